@@ -1,0 +1,350 @@
+"""Authoring of the bundled object assets: meshes, convex parts, resting poses, inertia.
+
+Run ``python -m scenegen.assets.authoring`` (or ``make assets``) to rebuild ``assets/``. Meshes are
+built from primitives with manifold3d (watertight by construction), so their convex decomposition can
+run coacd with ``preprocess_mode="off"``, which keeps the 2-3 mm features of thin utensils (coacd's
+voxel preprocessing would erase them, see shared/PITFALLS.md). Convex parts are cached under a key
+of (mesh sha256, coacd version, coacd parameters): a rebuild with the same inputs reuses them, so CI
+never runs coacd.
+
+Every mesh is authored upright (+z up) and recentred on its centre of mass, so the body frame of an
+object is its centre-of-mass frame and ``inertial.pos`` is zero.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import manifold3d as m3
+import numpy as np
+import trimesh
+import yaml
+
+from scenegen.paths import ASSETS_DIR
+
+SEGMENTS = 40  # circle resolution: a 4 cm radius is off by < 0.5 mm at 40 segments
+
+
+def _cyl(h: float, r: float, r_top: float | None = None) -> m3.Manifold:
+    """Cylinder (or frustum) standing on z = 0."""
+    return m3.Manifold.cylinder(h, r, r if r_top is None else r_top, SEGMENTS)
+
+
+def _box(sx: float, sy: float, sz: float) -> m3.Manifold:
+    """Box centred on the origin."""
+    return m3.Manifold.cube((sx, sy, sz), center=True)
+
+
+def _ellipsoid(rx: float, ry: float, rz: float) -> m3.Manifold:
+    return m3.Manifold.sphere(1.0, SEGMENTS).scale((rx, ry, rz))
+
+
+def teaspoon() -> m3.Manifold:
+    handle = _box(0.105, 0.011, 0.003).translate((-0.055, 0, 0.0015))
+    bowl = _ellipsoid(0.021, 0.014, 0.006).trim_by_plane((0, 0, 1), 0.0)
+    return handle + bowl.translate((0.01, 0, 0))
+
+
+def tablespoon() -> m3.Manifold:
+    handle = _box(0.13, 0.014, 0.0035).translate((-0.068, 0, 0.00175))
+    bowl = _ellipsoid(0.028, 0.019, 0.008).trim_by_plane((0, 0, 1), 0.0)
+    return handle + bowl.translate((0.012, 0, 0))
+
+
+def fork() -> m3.Manifold:
+    handle = _box(0.12, 0.013, 0.003).translate((-0.06, 0, 0.0015))
+    head = _box(0.05, 0.024, 0.003).translate((0.025, 0, 0.0015))
+    slots = [_box(0.032, 0.003, 0.01).translate((0.035, y, 0.0)) for y in (-0.006, 0.0, 0.006)]
+    for slot in slots:
+        head = head - slot
+    return handle + head
+
+
+def knife() -> m3.Manifold:
+    handle = _box(0.1, 0.018, 0.012).translate((-0.05, 0, 0.006))
+    blade = _box(0.11, 0.02, 0.002).translate((0.055, 0, 0.001))
+    return handle + blade
+
+
+def mug() -> m3.Manifold:
+    body = _cyl(0.095, 0.04) - _cyl(0.095, 0.035).translate((0, 0, 0.008))
+    # A D-shaped handle of straight bars: convex parts follow it exactly (a torus left a filled hole).
+    handle = _box(0.035, 0.012, 0.065) - _box(0.023, 0.02, 0.043)
+    return body + handle.translate((0.05, 0, 0.05))
+
+
+def bowl() -> m3.Manifold:
+    # A conical bowl of 24 flat facets: walls curved in one direction only, so a ring of convex parts
+    # follows them (a hemispherical shell was still 6 mm off with 40 parts).
+    outer = m3.Manifold.cylinder(0.06, 0.045, 0.08, 24)
+    inner = m3.Manifold.cylinder(0.06, 0.039, 0.074, 24).translate((0, 0, 0.006))
+    return outer - inner
+
+
+def plate() -> m3.Manifold:
+    return _cyl(0.016, 0.085, 0.11)
+
+
+def soda_can() -> m3.Manifold:
+    return _cyl(0.122, 0.033)
+
+
+def soup_can() -> m3.Manifold:
+    return _cyl(0.1, 0.038)
+
+
+def bottle() -> m3.Manifold:
+    body = _cyl(0.15, 0.035)
+    shoulder = _cyl(0.04, 0.035, 0.013).translate((0, 0, 0.15))
+    neck = _cyl(0.045, 0.013).translate((0, 0, 0.19))
+    return body + shoulder + neck
+
+
+def cereal_box() -> m3.Manifold:
+    return _box(0.14, 0.05, 0.2)
+
+
+def small_box() -> m3.Manifold:
+    return _box(0.06, 0.06, 0.05)
+
+
+@dataclass(frozen=True)
+class AssetSpec:
+    """What the author decides about one asset; everything else is measured from its mesh."""
+
+    name: str
+    category: str
+    build: Callable[[], m3.Manifold]
+    density: float  # kg/m^3 of the solid mesh (hollow goods get an effective density)
+    friction: float  # sliding friction coefficient
+    rgba: tuple[float, float, float, float]
+    coacd: dict = field(default_factory=dict)  # overrides of COACD_DEFAULTS
+
+
+# Curved thin walls need many small parts to stay within 3 mm of the surface.
+THIN_SHELL = {"threshold": 0.02, "max_convex_hull": 32}
+
+ASSET_SPECS: tuple[AssetSpec, ...] = (
+    AssetSpec("teaspoon", "spoon", teaspoon, 7800, 0.6, (0.75, 0.75, 0.78, 1)),
+    AssetSpec("tablespoon", "spoon", tablespoon, 7800, 0.6, (0.7, 0.7, 0.74, 1)),
+    AssetSpec("fork", "fork", fork, 7800, 0.6, (0.72, 0.72, 0.76, 1)),
+    AssetSpec("knife", "knife", knife, 3000, 0.6, (0.2, 0.2, 0.22, 1)),
+    AssetSpec("mug", "mug", mug, 2300, 0.8, (0.85, 0.3, 0.25, 1), THIN_SHELL),
+    AssetSpec(
+        "bowl", "bowl", bowl, 1500, 0.8, (0.9, 0.88, 0.8, 1), {"threshold": 0.02, "max_convex_hull": -1}
+    ),
+    AssetSpec("plate", "plate", plate, 900, 0.8, (0.95, 0.95, 0.95, 1)),
+    AssetSpec("soda_can", "can", soda_can, 850, 0.7, (0.8, 0.1, 0.1, 1)),
+    AssetSpec("soup_can", "can", soup_can, 1000, 0.7, (0.9, 0.7, 0.2, 1)),
+    AssetSpec("bottle", "bottle", bottle, 600, 0.7, (0.2, 0.55, 0.3, 1), {"threshold": 0.01}),
+    AssetSpec("cereal_box", "box", cereal_box, 250, 0.6, (0.95, 0.75, 0.2, 1)),
+    AssetSpec("small_box", "box", small_box, 500, 0.6, (0.35, 0.45, 0.8, 1)),
+)
+
+COACD_DEFAULTS = {"threshold": 0.03, "preprocess_mode": "off", "max_convex_hull": 16, "seed": 0}
+MIN_POSE_PROBABILITY = 0.05  # resting poses less likely than this (quasi-static drop) are left out
+MAX_POSES = 4
+
+
+def to_trimesh(solid: m3.Manifold) -> trimesh.Trimesh:
+    """Manifold -> trimesh, recentred on its centre of mass."""
+    raw = solid.to_mesh()
+    mesh = trimesh.Trimesh(np.asarray(raw.vert_properties)[:, :3], np.asarray(raw.tri_verts))
+    mesh.apply_translation(-mesh.center_mass)
+    return mesh
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def export_obj(mesh: trimesh.Trimesh) -> bytes:
+    """OBJ text with 7 significant digits: stable across runs, small in git."""
+    lines = [f"v {x:.7g} {y:.7g} {z:.7g}" for x, y, z in mesh.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def parts_key(mesh_sha: str, params: dict) -> str:
+    import coacd
+
+    blob = json.dumps(
+        {"mesh": mesh_sha, "coacd": coacd_version(coacd), "params": params}, sort_keys=True
+    )
+    return sha256_bytes(blob.encode())[:16]
+
+
+def coacd_version(coacd_module) -> str:
+    from importlib.metadata import version
+
+    return version("coacd")
+
+
+def convex_parts(mesh: trimesh.Trimesh, params: dict) -> list[trimesh.Trimesh]:
+    import coacd
+
+    coacd.set_log_level("error")
+    result = coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), **params)
+    return [trimesh.Trimesh(v, f).convex_hull for v, f in result]
+
+
+def hull_to_visual_distance(
+    mesh: trimesh.Trimesh, parts: list[trimesh.Trimesh], n: int = 20000
+) -> float:
+    """Symmetric Hausdorff distance (metres) between the visual surface and the outer surface of the
+    union of the parts.
+
+    Points are sampled on both surfaces with a fixed seed; the union is computed with manifold3d so
+    faces buried inside overlapping parts do not count.
+    """
+    union = m3.Manifold.batch_boolean(
+        [m3.Manifold.hull_points(np.asarray(p.vertices)) for p in parts], m3.OpType.Add
+    )
+    raw = union.to_mesh()
+    union_mesh = trimesh.Trimesh(np.asarray(raw.vert_properties)[:, :3], np.asarray(raw.tri_verts))
+    # Voids enclosed by the parts are shells with inward normals (negative volume): no contact can
+    # reach them, so only the outer surface is compared.
+    shells = [c for c in union_mesh.split(only_watertight=False) if c.volume > 0]
+    union_mesh = trimesh.util.concatenate(shells)
+    a, _ = trimesh.sample.sample_surface(mesh, n, seed=0)
+    b, _ = trimesh.sample.sample_surface(union_mesh, n, seed=1)
+    d_ab = trimesh.proximity.closest_point(union_mesh, a)[1].max()
+    # Parts' surface inside the visual solid bounds a void between parts, which no contact reaches and
+    # whose cost, missing coverage, the first direction already measures.
+    b = b[~mesh.contains(b)]
+    d_ba = trimesh.proximity.closest_point(mesh, b)[1].max() if len(b) else 0.0
+    return float(max(d_ab, d_ba))
+
+
+def resting_poses(mesh: trimesh.Trimesh) -> list[dict]:
+    """Stable resting poses on a horizontal plane, most likely first.
+
+    Each pose is the rotation (wxyz quaternion, yaw removed) that puts the object on the plane, the
+    height of its centre of mass above the plane (metres), its quasi-static probability, and whether
+    it is upright (the authored +z stays up).
+    """
+    transforms, probs = trimesh.poses.compute_stable_poses(mesh, sigma=0.0, n_samples=1)
+    poses = []
+    for tf, p in zip(transforms, probs, strict=True):
+        rot = _remove_yaw(tf[:3, :3])
+        upright = bool(rot[2, 2] > 0.99)
+        # The upright pose is kept even when unlikely under a random drop (a bottle), since the
+        # upright/toppled distinction is defined against it.
+        if len(poses) == MAX_POSES or (p < MIN_POSE_PROBABILITY and not upright):
+            continue
+        height = float(-(mesh.vertices @ rot.T)[:, 2].min())
+        poses.append(
+            {
+                "quat": [round(float(q), 7) for q in _quat_wxyz(rot)],
+                "height": round(height, 6),
+                "probability": round(float(p), 4),
+                "upright": upright,
+            }
+        )
+    return poses
+
+
+def _remove_yaw(rot: np.ndarray) -> np.ndarray:
+    """Left-multiply by a z rotation so that the body x axis projects onto world +x (or is vertical)."""
+    x = rot[:, 0]
+    if np.hypot(x[0], x[1]) < 1e-6:
+        x = rot[:, 1]
+    yaw = np.arctan2(x[1], x[0])
+    c, s = np.cos(-yaw), np.sin(-yaw)
+    rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return rz @ rot
+
+
+def _quat_wxyz(rot: np.ndarray) -> np.ndarray:
+    import mujoco
+
+    q = np.zeros(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rot).ravel())
+    return q if q[0] >= 0 else -q
+
+
+def inertial(mesh: trimesh.Trimesh, density: float) -> dict:
+    """Mass (kg) and inertia tensor (kg m^2, about the centre of mass, body axes) of the solid."""
+    mesh = mesh.copy()
+    mesh.density = density
+    return {
+        "mass": round(float(mesh.mass), 6),
+        "inertia": [[round(float(v), 10) for v in row] for row in mesh.moment_inertia],
+    }
+
+
+def build(out_dir: Path = ASSETS_DIR, only: set[str] | None = None) -> dict:
+    """(Re)build meshes, convex parts and the catalog under ``out_dir``; returns the catalog."""
+    import coacd
+
+    (out_dir / "meshes").mkdir(parents=True, exist_ok=True)
+    (out_dir / "parts").mkdir(parents=True, exist_ok=True)
+    entries = []
+    for spec in ASSET_SPECS:
+        if only and spec.name not in only:
+            continue
+        t0 = time.perf_counter()
+        mesh = to_trimesh(spec.build())
+        if not mesh.is_watertight:
+            raise RuntimeError(f"asset {spec.name}: authored mesh is not watertight")
+        obj = export_obj(mesh)
+        mesh = trimesh.load(trimesh.util.wrap_as_stream(obj), file_type="obj", process=False)
+        mesh_file = out_dir / "meshes" / f"{spec.name}.obj"
+        mesh_file.write_bytes(obj)
+        mesh_sha = sha256_bytes(obj)
+
+        params = {**COACD_DEFAULTS, **spec.coacd}
+        key = parts_key(mesh_sha, params)
+        part_dir = out_dir / "parts" / spec.name / key
+        if part_dir.exists():
+            parts = [trimesh.load(p, process=False) for p in sorted(part_dir.glob("part_*.obj"))]
+        else:
+            parts = convex_parts(mesh, params)
+            part_dir.mkdir(parents=True)
+            for i, part in enumerate(parts):
+                (part_dir / f"part_{i:03d}.obj").write_bytes(export_obj(part))
+            parts = [trimesh.load(p, process=False) for p in sorted(part_dir.glob("part_*.obj"))]
+        hausdorff = hull_to_visual_distance(mesh, parts)
+        entries.append(
+            {
+                "name": spec.name,
+                "category": spec.category,
+                "mesh": f"meshes/{spec.name}.obj",
+                "mesh_sha256": mesh_sha,
+                "parts": {
+                    "key": key,
+                    "coacd_version": coacd_version(coacd),
+                    "params": params,
+                    "files": [f"parts/{spec.name}/{key}/part_{i:03d}.obj" for i in range(len(parts))],
+                },
+                "density": spec.density,
+                **inertial(mesh, spec.density),
+                "friction": spec.friction,
+                "rgba": list(spec.rgba),
+                "extents": [round(float(e), 5) for e in mesh.extents],
+                "hull_to_visual_mm": round(hausdorff * 1000, 3),
+                "resting_poses": resting_poses(mesh),
+            }
+        )
+        print(
+            f"{spec.name:12s} parts={len(parts):2d} hausdorff={hausdorff * 1000:.2f} mm "
+            f"poses={len(entries[-1]['resting_poses'])} ({time.perf_counter() - t0:.1f} s)"
+        )
+    catalog = {"version": 1, "assets": entries}
+    header = "# Generated by `python -m scenegen.assets.authoring`; edit scenegen/assets/authoring.py instead.\n"
+    (out_dir / "catalog.yaml").write_text(header + yaml.safe_dump(catalog, sort_keys=False, width=100))
+    return catalog
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", nargs="*", help="asset names to rebuild (default: all)")
+    args = parser.parse_args()
+    build(only=set(args.only) if args.only else None)

@@ -1,0 +1,1 @@
+"""Verification stages before physics: cheap geometric checks."""

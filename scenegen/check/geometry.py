@@ -1,0 +1,302 @@
+"""Cheap geometric checks of a proposal, run before any physics, cheapest first.
+
+workspace -> support -> collision (python-fcl over the assets' convex parts: an AABB broad phase, then
+fcl's signed distance as narrow phase) -> robot clearance at the initial pose -> reachability.
+Each check returns a :class:`CheckResult` with its label, measured value and threshold; the first
+failure ends the sequence. A resting contact (signed distance ~0) is not a collision.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import fcl
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+from scipy.spatial import ConvexHull
+
+from scenegen import world
+from scenegen.assets.catalog import Catalog, convex_part_vertices
+from scenegen.schema.scene import CheckResult, ObjectPlacement, SceneProposal
+
+
+class CheckSettings(BaseModel):
+    """Thresholds of the geometric checks (metres)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    penetration_tolerance: float = 0.001  # deeper than this between parts is a collision
+    support_height_tolerance: float = 0.002  # |object bottom - surface| allowed after snapping
+    robot_clearance: float = 0.03  # minimum distance between objects/furniture and the robot
+    reach_min: float = 0.25  # grasp point distance from the shoulder (robot0_link1), metres
+    reach_max: float = 0.95  # Panda: 0.855 m to the flange + hand; an envelope, not IK
+    approach_clearance: float = 0.10  # free height above an object for a top approach
+
+
+@dataclass(frozen=True)
+class Solid:
+    """A named collision body for fcl: one or more convex pieces with their world AABB."""
+
+    name: str
+    pieces: tuple[fcl.CollisionObject, ...]
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def _result(check: str, passed: bool, label: str, value: float, threshold: float, detail: str = ""):
+    return CheckResult(
+        stage="check",
+        check=check,
+        passed=passed,
+        label=None if passed else label,
+        value=round(float(value), 6),
+        threshold=threshold,
+        detail=detail,
+    )
+
+
+@functools.lru_cache(maxsize=256)
+def _convex_geometry(root, asset: str, part: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    vertices = convex_part_vertices(root, asset)[part] * scale
+    hull = ConvexHull(vertices)
+    verts = vertices[hull.vertices]
+    remap = {old: new for new, old in enumerate(hull.vertices)}
+    faces = np.array([[remap[i] for i in simplex] for simplex in hull.simplices])
+    return verts, faces
+
+
+def _fcl_convex(verts: np.ndarray, faces: np.ndarray) -> fcl.Convex:
+    flat = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+    return fcl.Convex(verts, len(faces), flat)
+
+
+def object_solid(catalog: Catalog, obj: ObjectPlacement) -> Solid:
+    asset = catalog.get(obj.asset)
+    rot = quat_to_matrix(obj.quat)
+    pos = np.asarray(obj.position, float)
+    pieces, corners = [], []
+    for i in range(len(asset.parts.files)):
+        verts, faces = _convex_geometry(catalog.root, obj.asset, i, obj.scale)
+        pieces.append(fcl.CollisionObject(_fcl_convex(verts, faces), fcl.Transform(rot, pos)))
+        corners.append(verts @ rot.T + pos)
+    pts = np.concatenate(corners)
+    return Solid(obj.name, tuple(pieces), pts.min(0), pts.max(0))
+
+
+def box_solid(name: str, boxes: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Solid:
+    pieces, corners = [], []
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    for center, rot, half in boxes:
+        pieces.append(fcl.CollisionObject(fcl.Box(*(2 * half)), fcl.Transform(rot, center)))
+        corners.append((signs * half) @ rot.T + center)
+    pts = np.concatenate(corners)
+    return Solid(name, tuple(pieces), pts.min(0), pts.max(0))
+
+
+def signed_distance(a: Solid, b: Solid) -> float:
+    """Minimum signed distance (m) between two solids: negative is penetration depth."""
+    best = math.inf
+    request = fcl.DistanceRequest(enable_signed_distance=True)
+    for pa in a.pieces:
+        for pb in b.pieces:
+            best = min(best, fcl.distance(pa, pb, request, fcl.DistanceResult()))
+    return best
+
+
+def _aabb_overlap(a: Solid, b: Solid, margin: float) -> bool:
+    return bool(np.all(a.lo - margin <= b.hi) and np.all(b.lo - margin <= a.hi))
+
+
+def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
+    """Every object's centre lies over the table (value: worst margin to the table edge, m)."""
+    table = world.support_surfaces(())["table"]
+    worst, who = math.inf, ""
+    for obj in proposal.objects:
+        margin = table.margin(obj.position[:2])
+        if margin < worst:
+            worst, who = margin, obj.name
+    return _result("workspace", worst >= 0.0, "out_of_workspace", worst, 0.0, who)
+
+
+def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSettings) -> CheckResult:
+    """Each object rests on its named support: centre over its region, bottom at its height.
+
+    value: the worst of (margin of the centre inside the region, m) and (-|bottom - surface|, m).
+    """
+    surfaces = world.support_surfaces(proposal.furniture)
+    worst, who = math.inf, ""
+    for obj in proposal.objects:
+        surface = surfaces.get(obj.support)
+        if surface is None:
+            return _result(
+                "support", False, "unsupported", -math.inf, 0.0, f"{obj.name}: no {obj.support}"
+            )
+        asset = catalog.get(obj.asset)
+        bottom = obj.position[2] - asset.resting_poses[obj.resting_pose].height * obj.scale
+        gap = abs(bottom - surface.z)
+        score = min(surface.margin(obj.position[:2]), settings.support_height_tolerance - gap)
+        if score < worst:
+            worst, who = score, obj.name
+    return _result("support", worst >= 0.0, "unsupported", worst, 0.0, who)
+
+
+def scene_solids(proposal: SceneProposal, catalog: Catalog) -> tuple[list[Solid], list[Solid]]:
+    """(objects, furniture) as fcl solids in the world frame."""
+    objects = [object_solid(catalog, obj) for obj in proposal.objects]
+    furniture = [box_solid(p.name, world.furniture_boxes(p)) for p in proposal.furniture]
+    return objects, furniture
+
+
+def check_collision(
+    objects: Sequence[Solid], furniture: Sequence[Solid], settings: CheckSettings
+) -> CheckResult:
+    """Pairwise object-object and object-furniture penetration (value: min signed distance, m)."""
+    worst, who = math.inf, ""
+    others = [*objects, *furniture]
+    for i, a in enumerate(objects):
+        for b in others[i + 1 :]:
+            if not _aabb_overlap(a, b, settings.penetration_tolerance):  # broad phase
+                continue
+            d = signed_distance(a, b)
+            if d < worst:
+                worst, who = d, f"{a.name}~{b.name}"
+    if worst is math.inf:
+        worst = 1.0  # nothing near anything: report a large clearance
+    threshold = -settings.penetration_tolerance
+    return _result("collision", worst >= threshold, "collision", worst, threshold, who)
+
+
+@functools.lru_cache(maxsize=8)
+def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
+    """The arm and gripper's collision geoms at ``robot_pose`` as one solid, and the shoulder position."""
+    import mujoco
+
+    model = world.robot_spec().compile()
+    data = mujoco.MjData(model)
+    data.qpos[:], data.ctrl[:] = world.initial_state(model, robot_pose, [])
+    mujoco.mj_forward(model, data)
+    pieces, corners = [], []
+    for g in range(model.ngeom):
+        body = model.body(model.geom_bodyid[g]).name
+        if not body.startswith(world.ROBOT_PREFIXES) or model.geom_contype[g] == 0:
+            continue
+        rot, pos = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g]
+        if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
+            m = model.geom_dataid[g]
+            verts = model.mesh_vert[
+                model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]
+            ]
+            hull = ConvexHull(verts)
+            local = verts[hull.vertices]
+            remap = {old: new for new, old in enumerate(hull.vertices)}
+            faces = np.array([[remap[i] for i in s] for s in hull.simplices])
+            geom = _fcl_convex(local, faces)
+        elif model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
+            local = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+            local = local * model.geom_size[g]
+            geom = fcl.Box(*(2 * model.geom_size[g]))
+        else:  # spheres, capsules, cylinders: bound by a sphere of their radius + half length
+            r = float(model.geom_rbound[g])
+            local = np.array([[-r, -r, -r], [r, r, r]])
+            geom = fcl.Sphere(r)
+        pieces.append(fcl.CollisionObject(geom, fcl.Transform(rot.copy(), pos.copy())))
+        corners.append(local @ rot.T + pos)
+    pts = np.concatenate(corners)
+    shoulder = data.body("robot0_link1").xpos.copy()
+    return Solid("robot", tuple(pieces), pts.min(0), pts.max(0)), shoulder
+
+
+def check_robot_clearance(
+    objects: Sequence[Solid], furniture: Sequence[Solid], robot: Solid, settings: CheckSettings
+) -> CheckResult:
+    """Distance (m) from the robot at its initial pose to the nearest object or furniture piece."""
+    worst, who = math.inf, ""
+    for solid in [*objects, *furniture]:
+        if not _aabb_overlap(solid, robot, settings.robot_clearance):
+            continue
+        d = signed_distance(solid, robot)
+        if d < worst:
+            worst, who = d, solid.name
+    if worst is math.inf:
+        worst = settings.robot_clearance + 1.0
+    return _result(
+        "robot_clearance",
+        worst >= settings.robot_clearance,
+        "robot_overlap",
+        worst,
+        settings.robot_clearance,
+        who,
+    )
+
+
+def check_reachability(
+    proposal: SceneProposal,
+    catalog: Catalog,
+    furniture: Sequence[Solid],
+    shoulder: np.ndarray,
+    settings: CheckSettings,
+) -> CheckResult:
+    """The target has a top or side approach whose grasp point lies in the arm's envelope.
+
+    Top approach: grasp at the top of the object, needs ``approach_clearance`` of free height above it
+    (no furniture over it). Side approach: grasp at mid-height from the robot's side; always free of
+    overhangs, so an object under a shelf is hard, not unreachable. value: the best approach's margin
+    inside the envelope [reach_min, reach_max] (m).
+    """
+    obj = next(o for o in proposal.objects if o.name == proposal.target)
+    pos = np.asarray(obj.position)
+    height = catalog.get(obj.asset).resting_poses[obj.resting_pose].height * obj.scale
+    top = pos + [0, 0, height]
+    candidates = {"side": pos}
+    above_lo = top[:2]
+    covered = any(
+        f.lo[0] <= above_lo[0] <= f.hi[0]
+        and f.lo[1] <= above_lo[1] <= f.hi[1]
+        and top[2] < f.lo[2] < top[2] + settings.approach_clearance + 0.3
+        for f in furniture
+    )
+    if not covered:
+        candidates["top"] = top
+    best, how = -math.inf, ""
+    for name, point in candidates.items():
+        r = float(np.linalg.norm(point - shoulder))
+        margin = min(r - settings.reach_min, settings.reach_max - r)
+        if margin > best:
+            best, how = margin, name
+    return _result("reachability", best >= 0.0, "unreachable", best, 0.0, f"{obj.name} by {how}")
+
+
+def run_checks(
+    proposal: SceneProposal, catalog: Catalog, settings: CheckSettings
+) -> tuple[list[CheckResult], bool]:
+    """All geometric checks, cheapest first; stops at the first failure. Returns (results, passed)."""
+    results = [check_workspace(proposal, catalog)]
+    if results[-1].passed:
+        results.append(check_support(proposal, catalog, settings))
+    if not results[-1].passed:
+        return results, False
+    objects, furniture = scene_solids(proposal, catalog)
+    results.append(check_collision(objects, furniture, settings))
+    if not results[-1].passed:
+        return results, False
+    robot, shoulder = robot_geometry(tuple(proposal.condition.robot_pose))
+    results.append(check_robot_clearance(objects, furniture, robot, settings))
+    if not results[-1].passed:
+        return results, False
+    results.append(check_reachability(proposal, catalog, furniture, shoulder, settings))
+    return results, results[-1].passed
+
+
+def quat_to_matrix(quat: Sequence[float]) -> np.ndarray:
+    """Rotation matrix (3, 3) of a wxyz quaternion."""
+    w, x, y, z = np.asarray(quat, float) / np.linalg.norm(quat)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )

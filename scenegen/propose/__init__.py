@@ -1,0 +1,1 @@
+"""Proposers: (condition, n, seed) -> scene proposals. See :mod:`scenegen.propose.base`."""

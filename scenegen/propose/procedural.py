@@ -1,0 +1,279 @@
+"""Procedural proposer: domain randomization from explicit distributions.
+
+The baseline every learned-generator figure is compared with. Per proposal: furniture jittered
+around its home position, a target of the requested category plus random other objects, each on a
+support (table, shelf top, bin floor) drawn by weight, on a resting pose drawn by its probability,
+with uniform yaw and position; lights and cameras jittered. Objects are placed one by one with a
+cheap footprint test (bounding circles on the same support, ``placement_attempts`` tries) so that
+most proposals are not obvious overlaps; the verifier downstream decides what is kept.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from scenegen import world
+from scenegen.assets.catalog import Asset, Catalog
+from scenegen.propose.base import proposal_rng, register_proposer, snap_to_rest, yaw_quat
+from scenegen.schema.condition import Condition
+from scenegen.schema.scene import (
+    Camera,
+    FurniturePlacement,
+    Light,
+    Lighting,
+    ObjectPlacement,
+    SceneProposal,
+)
+
+# Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
+FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
+DEFAULT_CAMERAS = (
+    Camera(name="front", position=(1.25, 0.0, 1.45), lookat=(0.0, 0.0, 0.85)),
+    Camera(name="side", position=(0.15, -1.25, 1.35), lookat=(0.0, 0.0, 0.85)),
+)
+
+
+class LightingSettings(BaseModel):
+    """Distributions of the lighting: uniform ranges (lo, hi)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    n_lights: tuple[int, int] = (1, 3)
+    intensity: tuple[float, float] = (0.3, 0.9)
+    ambient: tuple[float, float] = (0.05, 0.3)
+    elevation_deg: tuple[float, float] = (35.0, 80.0)
+    distance: tuple[float, float] = (1.5, 2.5)  # m from the table centre
+    colour_jitter: float = 0.15  # warm/cool tint amplitude
+    shadows: int = 1  # how many lights cast shadows (each costs render time)
+
+
+class ProceduralSettings(BaseModel):
+    """Settings of the procedural proposer (``proposer.kind: procedural`` in a pipeline)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["procedural"] = "procedural"
+    n_objects: tuple[int, int] = Field(
+        (3, 6), description="inclusive range of free objects, target included"
+    )
+    furniture: tuple[Literal["shelf", "bin"], ...] = ("shelf", "bin")
+    furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
+    categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
+    support_weights: dict[str, float] = Field(
+        default_factory=lambda: {"table": 0.8, "shelf": 0.1, "bin": 0.1}
+    )
+    edge_margin: float = Field(
+        0.03, ge=0.0
+    )  # min distance (m) from an object's centre to its surface's edge
+    placement_attempts: int = Field(20, ge=1)
+    lighting: LightingSettings = LightingSettings()
+    camera_jitter: float = Field(0.03, ge=0.0, le=0.2)  # m, on position and look-at point
+    cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
+
+    @field_validator("n_objects")
+    @classmethod
+    def _range(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if not 1 <= v[0] <= v[1] <= 12:
+            raise ValueError(f"n_objects must be [min, max] with 1 <= min <= max <= 12, got {list(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _supports(self):
+        valid = {"table", *self.furniture}
+        for name, w in self.support_weights.items():
+            if name not in valid:
+                raise ValueError(
+                    f"support_weights: unknown support {name!r}; valid: {', '.join(sorted(valid))}"
+                )
+            if w < 0:
+                raise ValueError(f"support_weights: weight of {name!r} must be >= 0")
+        if self.support_weights.get("table", 0) <= 0:
+            raise ValueError("support_weights: 'table' needs a positive weight")
+        return self
+
+    def validate_categories(self, catalog: Catalog) -> None:
+        for c in self.categories or ():
+            if c not in catalog.categories:
+                raise ValueError(
+                    f"categories: unknown category {c!r}; valid: {', '.join(catalog.categories)}"
+                )
+
+
+def sample_lighting(rng: np.random.Generator, s: LightingSettings) -> Lighting:
+    lights = []
+    for i in range(int(rng.integers(s.n_lights[0], s.n_lights[1] + 1))):
+        elevation = math.radians(rng.uniform(*s.elevation_deg))
+        azimuth = rng.uniform(-math.pi, math.pi)
+        r = rng.uniform(*s.distance)
+        pos = np.array(
+            [
+                r * math.cos(elevation) * math.cos(azimuth),
+                r * math.cos(elevation) * math.sin(azimuth),
+                world.TABLE_TOP_Z + r * math.sin(elevation),
+            ]
+        )
+        aim = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), world.TABLE_TOP_Z])
+        direction = (aim - pos) / np.linalg.norm(aim - pos)
+        tint = rng.uniform(-s.colour_jitter, s.colour_jitter)  # > 0 warm, < 0 cool
+        colour = np.clip([1.0 + tint, 1.0, 1.0 - tint], 0.0, 1.0)
+        lights.append(
+            Light(
+                position=_r(pos),
+                direction=_r(direction),
+                colour=_r(colour),
+                intensity=round(float(rng.uniform(*s.intensity)), 4),
+                cast_shadow=i < s.shadows,
+            )
+        )
+    ambient = round(float(rng.uniform(*s.ambient)), 4)
+    return Lighting(lights=tuple(lights), ambient=(ambient, ambient, ambient))
+
+
+def jitter_cameras(
+    rng: np.random.Generator, cameras: Sequence[Camera], amount: float
+) -> tuple[Camera, ...]:
+    return tuple(
+        cam.model_copy(
+            update={
+                "position": _r(np.add(cam.position, rng.uniform(-amount, amount, 3))),
+                "lookat": _r(np.add(cam.lookat, rng.uniform(-amount, amount, 3))),
+            }
+        )
+        for cam in cameras
+    )
+
+
+def _r(v) -> tuple[float, ...]:
+    return tuple(round(float(x), 6) for x in v)
+
+
+def footprint_radius(asset: Asset, pose: int) -> float:
+    """Radius (m) of a circle that holds the asset's footprint in resting pose ``pose``, any yaw."""
+    from scenegen.check.geometry import quat_to_matrix
+
+    ext = np.asarray(asset.extents) / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
+    rotated = corners @ quat_to_matrix(asset.resting_poses[pose].quat).T
+    return float(np.linalg.norm(rotated[:, :2], axis=1).max())
+
+
+@register_proposer("procedural")
+class ProceduralProposer:
+    """Domain randomization behind the proposer interface."""
+
+    def __init__(self, settings: ProceduralSettings, catalog: Catalog):
+        settings.validate_categories(catalog)
+        self.settings = settings
+        self.catalog = catalog
+        pool = settings.categories or catalog.categories
+        self.others = tuple(a for a in catalog.assets if a.category in pool)
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
+
+    def propose(self, condition: Condition, indices: Sequence[int], seed: int) -> list[SceneProposal]:
+        return [self._one(condition, i, seed) for i in indices]
+
+    def _one(self, condition: Condition, index: int, seed: int) -> SceneProposal:
+        s = self.settings
+        rng = proposal_rng(seed, index)
+        furniture = tuple(
+            FurniturePlacement(
+                name=kind,
+                kind=kind,
+                position=(
+                    *_r(
+                        np.add(
+                            FURNITURE_HOME[kind], rng.uniform(-s.furniture_jitter, s.furniture_jitter, 2)
+                        )
+                    ),
+                    0.0,
+                ),
+            )
+            for kind in s.furniture
+        )
+        surfaces = world.support_surfaces(furniture)
+        support_names = [
+            n for n in sorted(s.support_weights) if n in surfaces and s.support_weights[n] > 0
+        ]
+        weights = np.array([s.support_weights[n] for n in support_names])
+        weights /= weights.sum()
+
+        keep_out = [
+            box
+            for piece in furniture
+            for box in world.furniture_boxes(piece)
+            if box[0][2] - box[2][2] < world.TABLE_TOP_Z + 1e-3
+        ]
+        n = int(rng.integers(s.n_objects[0], s.n_objects[1] + 1))
+        target_kinds = self.catalog.of_category(condition.target)
+        placed: list[ObjectPlacement] = []
+        footprints: list[tuple[str, np.ndarray, float]] = []
+        for slot in range(n):
+            pool = target_kinds if slot == 0 else self.others
+            asset = pool[int(rng.integers(len(pool)))]
+            probs = np.array([p.probability for p in asset.resting_poses])
+            pose = int(rng.choice(len(probs), p=probs / probs.sum()))
+            radius = footprint_radius(asset, pose)
+            support = support_names[int(rng.choice(len(support_names), p=weights))]
+            surface = surfaces[support]
+            # On the table an object may overhang the edge (near-edge cases); on furniture its whole
+            # footprint stays inside (bin walls, shelf board).
+            margin = s.edge_margin if support == "table" else max(s.edge_margin, radius)
+            for _ in range(s.placement_attempts):
+                local = rng.uniform(-1, 1, 2) * np.maximum(np.asarray(surface.half) - margin, 0.0)
+                c, sn = math.cos(surface.yaw), math.sin(surface.yaw)
+                xy = np.asarray(surface.center) + [
+                    c * local[0] - sn * local[1],
+                    sn * local[0] + c * local[1],
+                ]
+                free = all(
+                    sup != support or np.linalg.norm(xy - other) >= radius + r
+                    for sup, other, r in footprints
+                ) and (support != "table" or not any(_inside(xy, box, radius) for box in keep_out))
+                if free:
+                    break
+            yaw = rng.uniform(-math.pi, math.pi)
+            raw_quat = _quat_mul_yaw(yaw, asset.resting_poses[pose].quat)
+            raw_position = (*xy, surface.z + asset.resting_poses[pose].height)
+            position, quat, pose_index, distance = snap_to_rest(asset, raw_position, raw_quat, surface)
+            footprints.append((support, xy, radius))
+            placed.append(
+                ObjectPlacement(
+                    name=f"obj{slot}_{asset.name}",
+                    asset=asset.name,
+                    category=asset.category,
+                    position=position,
+                    quat=quat,
+                    support=support,
+                    resting_pose=pose_index,
+                    projection_distance=distance,
+                )
+            )
+        return SceneProposal(
+            index=index,
+            seed=seed,
+            condition=condition,
+            target=placed[0].name,
+            objects=tuple(placed),
+            furniture=furniture,
+            lighting=sample_lighting(rng, s.lighting),
+            cameras=jitter_cameras(rng, s.cameras, s.camera_jitter),
+        )
+
+
+def _inside(xy: np.ndarray, box: tuple[np.ndarray, np.ndarray, np.ndarray], radius: float) -> bool:
+    """Whether a circle at ``xy`` overlaps the footprint of a world box (centre, rotation, half sizes)."""
+    center, rot, half = box
+    local = rot[:2, :2].T @ (xy - center[:2])
+    return bool(np.all(np.abs(local) < half[:2] + radius))
+
+
+def _quat_mul_yaw(yaw: float, quat: Sequence[float]) -> np.ndarray:
+    from scenegen.propose.base import quat_mul
+
+    return quat_mul(yaw_quat(yaw), np.asarray(quat, float))

@@ -1,0 +1,1 @@
+"""Pydantic models: the language between stages (condition, proposals, checks, records)."""

@@ -1,0 +1,210 @@
+"""The request a batch is generated for: task, target, rare-case tags, robot initial pose.
+
+Condition semantics (shared/DESIGN.md): each rare-case tag is ``required``, ``forbidden`` or
+``unspecified``; a tag not named is unspecified. The null condition (unconditional sampling) is a
+separate notion of the generator, not a value of these fields.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+TagState = Literal["required", "forbidden", "unspecified"]
+
+# Task registry: what the target is for. A dict, documented here and in docs/conditions.md.
+TASKS: dict[str, str] = {
+    "retrieve": "grasp the target and lift it clear of its support",
+    "upright": "stand a toppled target back on its upright resting pose",
+    "clear": "move the objects around the target so that it can be grasped",
+}
+
+# Rare-case tags, measured on the settled scene (predicates arrive with the rare-case issue).
+RARE_TAGS: tuple[str, ...] = (
+    "near_edge",
+    "under_overhang",
+    "toppled",
+    "occluded",
+    "clutter",
+    "stacked",
+    "low_light",
+    "on_floor",
+)
+TAGS: tuple[str, ...] = (*RARE_TAGS, "nominal")
+
+# Panda joint limits (radians), from robosuite 1.5.2's robot model; the pose is checked against them.
+PANDA_JOINT_LIMITS: tuple[tuple[float, float], ...] = (
+    (-2.8973, 2.8973),
+    (-1.7628, 1.7628),
+    (-2.8973, 2.8973),
+    (-3.0718, -0.0698),
+    (-2.8973, 2.8973),
+    (-0.0175, 3.7525),
+    (-2.8973, 2.8973),
+)
+# Named initial poses. `home` is robosuite's Panda init_qpos.
+ROBOT_POSES: dict[str, tuple[float, ...]] = {
+    "home": (0.0, 0.19634954, 0.0, -2.61799388, 0.0, 2.94159265, 0.78539816),
+    "ready": (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785),
+}
+
+
+def known_categories() -> tuple[str, ...]:
+    """Object categories of the bundled asset catalog (the valid targets)."""
+    from scenegen.assets.catalog import load_catalog
+
+    return load_catalog().categories
+
+
+class Condition(BaseModel):
+    """A generation request.
+
+    Fields:
+        task: a key of ``TASKS``.
+        target: an object category of the asset catalog (``spoon``, ``mug``, ...).
+        tags: rare-case tag -> ``required`` / ``forbidden`` / ``unspecified``; absent = unspecified.
+        robot_pose: 7 Panda joint angles in radians, or the name of a pose in ``ROBOT_POSES``.
+        text: optional free text, parsed by :func:`parse_request` into the fields above; a word the
+            parser cannot place is an error.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    task: str = "retrieve"
+    target: str = "spoon"
+    tags: dict[str, TagState] = Field(default_factory=dict)
+    robot_pose: tuple[float, float, float, float, float, float, float] = ROBOT_POSES["home"]
+    text: str | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _apply_text(cls, data):
+        if not isinstance(data, dict) or not data.get("text"):
+            return data
+        parsed = parse_request(data["text"])
+        merged = dict(data)
+        for key, value in parsed.items():
+            if key == "tags":
+                tags = dict(merged.get("tags") or {})
+                for tag, state in value.items():
+                    if tags.get(tag, state) != state:
+                        raise ValueError(
+                            f"text: tag {tag!r} is {state} in the text but {tags[tag]} in tags"
+                        )
+                    tags[tag] = state
+                merged["tags"] = tags
+            elif key in data and data[key] != value:
+                raise ValueError(f"text: says {key}={value!r} but the field {key} is {data[key]!r}")
+            else:
+                merged[key] = value
+        return merged
+
+    @field_validator("task")
+    @classmethod
+    def _known_task(cls, task: str) -> str:
+        if task not in TASKS:
+            raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASKS)}")
+        return task
+
+    @field_validator("target")
+    @classmethod
+    def _known_target(cls, target: str) -> str:
+        categories = known_categories()
+        if target not in categories:
+            raise ValueError(f"unknown target {target!r}; valid targets: {', '.join(categories)}")
+        return target
+
+    @field_validator("tags")
+    @classmethod
+    def _known_tags(cls, tags: dict[str, TagState]) -> dict[str, TagState]:
+        for tag in tags:
+            if tag not in TAGS:
+                raise ValueError(f"unknown tag {tag!r}; valid tags: {', '.join(TAGS)}")
+        # Drop explicit "unspecified" and sort, so equal requests compare and hash equal.
+        return {t: tags[t] for t in sorted(tags) if tags[t] != "unspecified"}
+
+    @field_validator("robot_pose", mode="before")
+    @classmethod
+    def _named_pose(cls, pose):
+        if isinstance(pose, str):
+            if pose not in ROBOT_POSES:
+                raise ValueError(f"unknown robot pose {pose!r}; valid names: {', '.join(ROBOT_POSES)}")
+            return ROBOT_POSES[pose]
+        return pose
+
+    @field_validator("robot_pose")
+    @classmethod
+    def _within_limits(cls, pose: tuple[float, ...]) -> tuple[float, ...]:
+        for i, (q, (lo, hi)) in enumerate(zip(pose, PANDA_JOINT_LIMITS, strict=True)):
+            if not math.isfinite(q) or not lo <= q <= hi:
+                raise ValueError(
+                    f"joint {i + 1} angle {q} rad is outside the Panda's range [{lo}, {hi}]"
+                )
+        return pose
+
+    def required(self) -> list[str]:
+        return [t for t, s in self.tags.items() if s == "required"]
+
+    def forbidden(self) -> list[str]:
+        return [t for t, s in self.tags.items() if s == "forbidden"]
+
+
+# Words the parser accepts without meaning; everything else must be a task, target, tag or pose.
+_FILLER = frozenset(
+    "a an the with and in on at its is has robot starts start pose from of to scene where".split()
+)
+_NEGATIONS = frozenset({"not", "no", "without"})
+
+
+def parse_request(text: str) -> dict:
+    """Parse free text such as ``"retrieve the spoon near edge, not clutter, robot at home"``.
+
+    Grammar (case-insensitive, punctuation ignored): task names, target categories, tag names (with
+    ``_`` or a space between words), ``not``/``no``/``without`` before a tag to forbid it, and
+    robot pose names. Filler words (``the``, ``with``, ``robot`` ...) are skipped. Any other word is
+    an error naming it: a request is never silently half-understood.
+    """
+    words = re.findall(r"[a-z0-9_]+", text.lower())
+    categories = set(known_categories())
+    out: dict = {"tags": {}}
+    negate = False
+    i = 0
+    while i < len(words):
+        word = words[i]
+        two = f"{word}_{words[i + 1]}" if i + 1 < len(words) else None
+        if two in TAGS:
+            word, i = two, i + 1
+        if word in _NEGATIONS:
+            negate = True
+        elif word in TAGS:
+            out["tags"][word] = "forbidden" if negate else "required"
+            negate = False
+        elif word in TASKS:
+            _set_once(out, "task", word)
+        elif word in categories:
+            _set_once(out, "target", word)
+        elif word in ROBOT_POSES:
+            _set_once(out, "robot_pose", word)
+        elif word not in _FILLER:
+            raise ValueError(
+                f"text: cannot place the word {word!r}; use task names ({', '.join(TASKS)}), "
+                f"targets ({', '.join(sorted(categories))}), tags ({', '.join(TAGS)}), 'not' before a "
+                f"tag, or robot poses ({', '.join(ROBOT_POSES)})"
+            )
+        if negate and word not in _NEGATIONS:
+            raise ValueError(f"text: 'not' must be followed by a tag, got {word!r}")
+        i += 1
+    if negate:
+        raise ValueError("text: 'not' at the end must be followed by a tag")
+    if not out["tags"]:
+        del out["tags"]
+    return out
+
+
+def _set_once(out: dict, key: str, value: str) -> None:
+    if key in out and out[key] != value:
+        raise ValueError(f"text: names two values for {key}: {out[key]!r} and {value!r}")
+    out[key] = value
