@@ -1,0 +1,35 @@
+# scenegen developer commands. `make demo` and `make test` each set up .venv first (idempotent).
+PYTHON ?= python3.11
+VENV ?= .venv
+BIN := $(VENV)/bin
+export MUJOCO_GL ?= egl
+
+.PHONY: setup demo test test-fast lint assets clean
+
+$(BIN)/scenegen: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $@
+
+setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)
+
+demo: setup  ## generate the demo batch into runs/demo (replaces an earlier one)
+	rm -rf runs/demo
+	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo
+
+test: setup  ## the whole test suite, as CI runs it
+	$(BIN)/python -m pytest -q
+
+test-fast: setup  ## everything but the slow end-to-end tests
+	$(BIN)/python -m pytest -q -m "not slow"
+
+lint: setup
+	$(BIN)/ruff check scenegen tests benchmarks
+	$(BIN)/ruff format --check scenegen tests benchmarks
+
+assets: setup  ## rebuild assets/ (meshes, convex parts, catalog); coacd runs only for changed meshes
+	$(BIN)/python -m scenegen.assets.authoring
+
+clean:
+	rm -rf runs .pytest_cache
