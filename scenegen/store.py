@@ -66,7 +66,6 @@ def scene_xml(spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: 
     for key in list(spec.keys):
         spec.delete(key)
     spec.add_key(name="settled", qpos=qpos, ctrl=ctrl)
-    spec.compile()
     root = ET.fromstring(spec.to_xml())
     needed: dict[str, str] = {}
     for element in root.iter():

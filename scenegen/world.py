@@ -43,6 +43,9 @@ CONTACT_OPTIONS = {
     "torsional_friction": 0.005,
     "rolling_friction": 0.0001,
     "multiccd": True,
+    # Contacts of object parts activate 0.5 mm before touching: without it, 50 g utensils 3 mm thick
+    # kept chattering at ~3 cm/s on the table (measured) and never came to rest.
+    "object_margin": 0.0005,
 }
 
 # Geom groups: visual geoms are in group 1 (rendered), collision parts of objects in group 3
@@ -302,6 +305,7 @@ def _add_object(spec: mujoco.MjSpec, asset: Asset, obj: ObjectPlacement) -> None
             rgba=[0.5, 0.5, 0.5, 0.3],
             mass=0,
             condim=OBJECT_CONDIM,
+            margin=CONTACT_OPTIONS["object_margin"],
             friction=[
                 asset.friction,
                 CONTACT_OPTIONS["torsional_friction"],
