@@ -39,7 +39,8 @@ def main() -> None:
     print(f"{config.name}: {summary.accepted} accepted of {summary.proposals} proposals, wall {wall:.1f} s")
     print(f"{'stage':<10}{'seconds':>10}{'share':>8}{'s/accepted':>12}")
     for stage in STAGES:
-        print(f"{stage:<10}{summary.seconds[stage]:>10.2f}{summary.seconds[stage] / wall:>8.1%}{per_scene[stage]:>12.3f}")
+        s = summary.seconds[stage]
+        print(f"{stage:<10}{s:>10.2f}{s / wall:>8.1%}{per_scene[stage]:>12.3f}")
     other = wall - sum(summary.seconds.values())
     print(f"{'other':<10}{other:>10.2f}{other / wall:>8.1%}")
     print(f"{'total':<10}{wall:>10.2f}{1:>8.0%}{wall / max(summary.accepted, 1):>12.3f}")

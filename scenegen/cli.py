@@ -65,15 +65,16 @@ def _generate(args: argparse.Namespace) -> int:
     summary = run_batch(config, out, progress=not args.quiet)
     rejected = sum(summary.rejections.values())
     print(
-        f"{summary.accepted} scenes accepted of {summary.proposals} proposals in {summary.wall:.1f} s -> {out}"
+        f"{summary.accepted} scenes accepted of {summary.proposals} proposals "
+        f"in {summary.wall:.1f} s -> {out}"
     )
     if rejected:
         print("rejections: " + ", ".join(f"{k} {v}" for k, v in summary.rejections.most_common()))
     print("stage seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in summary.seconds.items()))
     if summary.accepted < config.n:
         print(
-            f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted before the proposal cap "
-            f"({config.proposal_cap}); raise --max-proposals or relax the recipe",
+            f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted before the "
+            f"proposal cap ({config.proposal_cap}); raise --max-proposals or relax the recipe",
             file=sys.stderr,
         )
         return 1

@@ -80,7 +80,9 @@ def load_pipeline(path: str | Path, overrides: dict | None = None) -> PipelineCo
         line = f" line {mark.line + 1}" if mark else ""
         raise ConfigError(f"{path}:{line} not valid YAML: {getattr(exc, 'problem', exc)}") from None
     if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: a pipeline file must be a mapping of keys (name, n, seed, condition, ...)")
+        raise ConfigError(
+            f"{path}: a pipeline file must be a mapping of keys (name, n, seed, condition, ...)"
+        )
     raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
     try:
         return PipelineConfig(**raw)

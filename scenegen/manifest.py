@@ -50,7 +50,9 @@ class Source(BaseModel):
             if missing:
                 raise ValueError(f"source {self.name!r}: a synthetic source needs {', '.join(missing)}")
         if self.origin == "reference" and "stands in" not in self.description:
-            raise ValueError(f"source {self.name!r}: a reference source must say what real data it stands in for")
+            raise ValueError(
+                f"source {self.name!r}: a reference source must say what real data it stands in for"
+            )
         return self
 
 
@@ -61,7 +63,9 @@ class Manifest(BaseModel):
     sources: list[Source] = Field(default_factory=list)
 
 
-def batch_source(batch: Path, name: str, pipeline: dict, generator: dict, seed: int, catalog_sha: str) -> Source:
+def batch_source(
+    batch: Path, name: str, pipeline: dict, generator: dict, seed: int, catalog_sha: str
+) -> Source:
     """A synthetic source describing a batch directory, with counts derived from its files."""
     scenes = sum(1 for d in batch.iterdir() if d.is_dir() and (d / "scene.json").is_file())
     rejections = read_jsonl(batch / REJECTIONS)
@@ -83,7 +87,9 @@ def batch_source(batch: Path, name: str, pipeline: dict, generator: dict, seed: 
 
 
 def write_manifest(path: Path, manifest: Manifest) -> None:
-    header = f"# scenegen data manifest, schema v{SCHEMA_VERSION} (scenegen/manifest.py). Counts come from the files.\n"
+    header = (
+        f"# scenegen data manifest, schema v{SCHEMA_VERSION} (scenegen/manifest.py). Counts from files.\n"
+    )
     atomic_write(path, header + yaml.safe_dump(manifest.model_dump(mode="json"), sort_keys=False, width=100))
 
 

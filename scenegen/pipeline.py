@@ -58,7 +58,9 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         return out
 
     t0 = time.perf_counter()
-    spec = world.build_world(catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras)
+    spec = world.build_world(
+        catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras
+    )
     model = spec.compile()
     qpos0, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
     out.seconds["build"] = time.perf_counter() - t0
@@ -172,7 +174,8 @@ def run_batch(config: PipelineConfig, out: Path, progress: bool = True) -> Batch
                 rejections[outcome.rejection.label] += 1
             seconds["store"] += time.perf_counter() - t0
             bar.set_postfix_str(
-                f"proposals={index} " + " ".join(f"{k}={v}" for k, v in sorted(rejections.items())), refresh=False
+                f"proposals={index} " + " ".join(f"{k}={v}" for k, v in sorted(rejections.items())),
+                refresh=False,
             )
             if accepted == config.n:
                 break
@@ -187,6 +190,10 @@ def run_batch(config: PipelineConfig, out: Path, progress: bool = True) -> Batch
         catalog_sha=catalog.sha256,
     )
     write_manifest(out / "manifest.yaml", Manifest(kind="batch", sources=[source]))
-    timing = {"wall": round(wall, 3), "stages": {k: round(v, 3) for k, v in seconds.items()}, "proposals": index}
+    timing = {
+        "wall": round(wall, 3),
+        "stages": {k: round(v, 3) for k, v in seconds.items()},
+        "proposals": index,
+    }
     atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
     return BatchSummary(out, accepted, index, rejections, seconds, wall)

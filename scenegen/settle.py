@@ -222,9 +222,7 @@ def passive_test(
     ]
 
 
-def contact_configuration(
-    model: mujoco.MjModel, qpos: np.ndarray, objects: Sequence[str]
-) -> list[Contact]:
+def contact_configuration(model: mujoco.MjModel, qpos: np.ndarray, objects: Sequence[str]) -> list[Contact]:
     """Which object rests on or touches which body at ``qpos`` (one row per pair, deepest distance)."""
     data = mujoco.MjData(model)
     data.qpos[:] = qpos

@@ -53,7 +53,9 @@ def asset_name(path: str) -> str:
     return f"{source_sha256(path)[:12]}_{Path(path).name}"
 
 
-def scene_xml(spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: dict) -> tuple[str, dict[str, str]]:
+def scene_xml(
+    spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: dict
+) -> tuple[str, dict[str, str]]:
     """MJCF of a settled scene, with mesh and texture files referenced inside ``../_assets/``.
 
     Free bodies are moved to their settled poses and keyframe 0 ``settled`` holds the full qpos and

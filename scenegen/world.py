@@ -128,9 +128,7 @@ class Surface:
 
 def support_surfaces(furniture: Sequence[FurniturePlacement]) -> dict[str, Surface]:
     """The table top and each furniture piece's surface, keyed by name (``table``, furniture names)."""
-    surfaces = {
-        "table": Surface("table", TABLE_TOP_Z, (0.0, 0.0), (TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2))
-    }
+    surfaces = {"table": Surface("table", TABLE_TOP_Z, (0.0, 0.0), (TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2))}
     for piece in furniture:
         kind = FURNITURE[piece.kind]
         surfaces[piece.name] = Surface(
@@ -148,8 +146,7 @@ def furniture_boxes(piece: FurniturePlacement) -> list[tuple[np.ndarray, np.ndar
     rot = _yaw_matrix(piece.yaw)
     origin = np.array([piece.position[0], piece.position[1], TABLE_TOP_Z])
     return [
-        (origin + rot @ np.array(box.center), rot, np.array(box.half))
-        for box in FURNITURE[piece.kind].boxes
+        (origin + rot @ np.array(box.center), rot, np.array(box.half)) for box in FURNITURE[piece.kind].boxes
     ]
 
 

@@ -117,9 +117,7 @@ def _validate_files(catalog: Catalog, asset: Asset) -> None:
         raise CatalogError(f"{where}: mesh file missing; rebuild with `make assets`")
     data = mesh_file.read_bytes()
     if hashlib.sha256(data).hexdigest() != asset.mesh_sha256:
-        raise CatalogError(
-            f"{where}: mesh sha256 does not match the catalog; rebuild with `make assets`"
-        )
+        raise CatalogError(f"{where}: mesh sha256 does not match the catalog; rebuild with `make assets`")
     vertices, faces = read_obj(data, where)
     if not _is_watertight(faces):
         raise CatalogError(f"{where}: mesh is not watertight (every edge must join two faces)")

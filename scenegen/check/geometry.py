@@ -33,7 +33,6 @@ class CheckSettings(BaseModel):
     robot_clearance: float = 0.03  # minimum distance between objects/furniture and the robot
     reach_min: float = 0.25  # grasp point distance from the shoulder (robot0_link1), metres
     reach_max: float = 0.95  # Panda: 0.855 m to the flange + hand; an envelope, not IK
-    approach_clearance: float = 0.10  # free height above an object for a top approach
 
 
 @dataclass(frozen=True)
@@ -131,9 +130,7 @@ def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSett
     for obj in proposal.objects:
         surface = surfaces.get(obj.support)
         if surface is None:
-            return _result(
-                "support", False, "unsupported", -math.inf, 0.0, f"{obj.name}: no {obj.support}"
-            )
+            return _result("support", False, "unsupported", -math.inf, 0.0, f"{obj.name}: no {obj.support}")
         asset = catalog.get(obj.asset)
         bottom = obj.position[2] - asset.resting_poses[obj.resting_pose].height * obj.scale
         gap = abs(bottom - surface.z)
@@ -186,9 +183,7 @@ def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
         rot, pos = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g]
         if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
             m = model.geom_dataid[g]
-            verts = model.mesh_vert[
-                model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]
-            ]
+            verts = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
             hull = ConvexHull(verts)
             local = verts[hull.vertices]
             remap = {old: new for new, old in enumerate(hull.vertices)}
@@ -233,32 +228,21 @@ def check_robot_clearance(
 
 
 def check_reachability(
-    proposal: SceneProposal,
-    catalog: Catalog,
-    furniture: Sequence[Solid],
-    shoulder: np.ndarray,
-    settings: CheckSettings,
+    proposal: SceneProposal, catalog: Catalog, shoulder: np.ndarray, settings: CheckSettings
 ) -> CheckResult:
     """The target has a top or side approach whose grasp point lies in the arm's envelope.
 
-    Top approach: grasp at the top of the object, needs ``approach_clearance`` of free height above it
-    (no furniture over it). Side approach: grasp at mid-height from the robot's side; always free of
-    overhangs, so an object under a shelf is hard, not unreachable. value: the best approach's margin
-    inside the envelope [reach_min, reach_max] (m).
+    Top approach: grasp at the top of the object, open only if no furniture box lies above it.
+    Side approach: grasp at mid-height from the robot's side; always open, so an object under a
+    shelf is hard, not unreachable. value: the best approach's margin inside the envelope
+    [reach_min, reach_max] around the shoulder (m).
     """
     obj = next(o for o in proposal.objects if o.name == proposal.target)
     pos = np.asarray(obj.position)
-    height = catalog.get(obj.asset).resting_poses[obj.resting_pose].height * obj.scale
-    top = pos + [0, 0, height]
+    top = pos + [0, 0, catalog.get(obj.asset).resting_poses[obj.resting_pose].height * obj.scale]
     candidates = {"side": pos}
-    above_lo = top[:2]
-    covered = any(
-        f.lo[0] <= above_lo[0] <= f.hi[0]
-        and f.lo[1] <= above_lo[1] <= f.hi[1]
-        and top[2] < f.lo[2] < top[2] + settings.approach_clearance + 0.3
-        for f in furniture
-    )
-    if not covered:
+    boxes = [box for piece in proposal.furniture for box in world.furniture_boxes(piece)]
+    if not any(_over(top, box) for box in boxes):
         candidates["top"] = top
     best, how = -math.inf, ""
     for name, point in candidates.items():
@@ -267,6 +251,13 @@ def check_reachability(
         if margin > best:
             best, how = margin, name
     return _result("reachability", best >= 0.0, "unreachable", best, 0.0, f"{obj.name} by {how}")
+
+
+def _over(point: np.ndarray, box: tuple[np.ndarray, np.ndarray, np.ndarray]) -> bool:
+    """Whether a world box (centre, rotation, half sizes) lies above ``point``, blocking a top approach."""
+    center, rot, half = box
+    local = rot.T @ (point - center)
+    return bool(np.all(np.abs(local[:2]) <= half[:2]) and center[2] - half[2] > point[2])
 
 
 def run_checks(
@@ -286,7 +277,7 @@ def run_checks(
     results.append(check_robot_clearance(objects, furniture, robot, settings))
     if not results[-1].passed:
         return results, False
-    results.append(check_reachability(proposal, catalog, furniture, shoulder, settings))
+    results.append(check_reachability(proposal, catalog, shoulder, settings))
     return results, results[-1].passed
 
 

@@ -57,18 +57,14 @@ class ProceduralSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     kind: Literal["procedural"] = "procedural"
-    n_objects: tuple[int, int] = Field(
-        (3, 6), description="inclusive range of free objects, target included"
-    )
+    n_objects: tuple[int, int] = Field((3, 6), description="inclusive range of free objects, target included")
     furniture: tuple[Literal["shelf", "bin"], ...] = ("shelf", "bin")
     furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
     categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
     support_weights: dict[str, float] = Field(
         default_factory=lambda: {"table": 0.8, "shelf": 0.1, "bin": 0.1}
     )
-    edge_margin: float = Field(
-        0.03, ge=0.0
-    )  # min distance (m) from an object's centre to its surface's edge
+    edge_margin: float = Field(0.03, ge=0.0)  # min distance (m) from an object's centre to its surface's edge
     placement_attempts: int = Field(20, ge=1)
     lighting: LightingSettings = LightingSettings()
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)  # m, on position and look-at point
@@ -133,9 +129,7 @@ def sample_lighting(rng: np.random.Generator, s: LightingSettings) -> Lighting:
     return Lighting(lights=tuple(lights), ambient=(ambient, ambient, ambient))
 
 
-def jitter_cameras(
-    rng: np.random.Generator, cameras: Sequence[Camera], amount: float
-) -> tuple[Camera, ...]:
+def jitter_cameras(rng: np.random.Generator, cameras: Sequence[Camera], amount: float) -> tuple[Camera, ...]:
     return tuple(
         cam.model_copy(
             update={
@@ -187,9 +181,7 @@ class ProceduralProposer:
                 kind=kind,
                 position=(
                     *_r(
-                        np.add(
-                            FURNITURE_HOME[kind], rng.uniform(-s.furniture_jitter, s.furniture_jitter, 2)
-                        )
+                        np.add(FURNITURE_HOME[kind], rng.uniform(-s.furniture_jitter, s.furniture_jitter, 2))
                     ),
                     0.0,
                 ),
@@ -197,9 +189,7 @@ class ProceduralProposer:
             for kind in s.furniture
         )
         surfaces = world.support_surfaces(furniture)
-        support_names = [
-            n for n in sorted(s.support_weights) if n in surfaces and s.support_weights[n] > 0
-        ]
+        support_names = [n for n in sorted(s.support_weights) if n in surfaces and s.support_weights[n] > 0]
         weights = np.array([s.support_weights[n] for n in support_names])
         weights /= weights.sum()
 
@@ -232,8 +222,7 @@ class ProceduralProposer:
                     sn * local[0] + c * local[1],
                 ]
                 free = all(
-                    sup != support or np.linalg.norm(xy - other) >= radius + r
-                    for sup, other, r in footprints
+                    sup != support or np.linalg.norm(xy - other) >= radius + r for sup, other, r in footprints
                 ) and (support != "table" or not any(_inside(xy, box, radius) for box in keep_out))
                 if free:
                     break

@@ -91,9 +91,7 @@ class Condition(BaseModel):
                 tags = dict(merged.get("tags") or {})
                 for tag, state in value.items():
                     if tags.get(tag, state) != state:
-                        raise ValueError(
-                            f"text: tag {tag!r} is {state} in the text but {tags[tag]} in tags"
-                        )
+                        raise ValueError(f"text: tag {tag!r} is {state} in the text but {tags[tag]} in tags")
                     tags[tag] = state
                 merged["tags"] = tags
             elif key in data and data[key] != value:
@@ -140,9 +138,7 @@ class Condition(BaseModel):
     def _within_limits(cls, pose: tuple[float, ...]) -> tuple[float, ...]:
         for i, (q, (lo, hi)) in enumerate(zip(pose, PANDA_JOINT_LIMITS, strict=True)):
             if not math.isfinite(q) or not lo <= q <= hi:
-                raise ValueError(
-                    f"joint {i + 1} angle {q} rad is outside the Panda's range [{lo}, {hi}]"
-                )
+                raise ValueError(f"joint {i + 1} angle {q} rad is outside the Panda's range [{lo}, {hi}]")
         return pose
 
     def required(self) -> list[str]:

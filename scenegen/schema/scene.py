@@ -67,7 +67,7 @@ class FurniturePlacement(_Value):
 
 
 class Light(_Value):
-    """A directional-cone spot light. Colour is 0-1 RGB, intensity scales it (diffuse = colour x intensity)."""
+    """A spot light. Colour is 0-1 RGB; intensity scales it (diffuse = colour x intensity)."""
 
     position: Vec3
     direction: Vec3
@@ -82,7 +82,7 @@ class Lighting(_Value):
 
 
 class Camera(_Value):
-    """A pinhole camera looking from ``position`` at ``lookat``; ``fovy`` is the vertical field of view (deg)."""
+    """A pinhole camera looking from ``position`` at ``lookat``; ``fovy``: vertical field of view (deg)."""
 
     name: str
     position: Vec3
