@@ -155,9 +155,18 @@ def _yaw_matrix(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _quiet_robosuite() -> None:
+    """Drop robosuite's import-time warnings (private macro file, optional robots, mink IK): they
+    concern features scenegen does not use and would greet every user of the CLI."""
+    import logging
+
+    logging.getLogger("robosuite_logs").addFilter(lambda record: record.levelno >= logging.ERROR)
+
+
 @functools.lru_cache(maxsize=1)
 def _robosuite_xml() -> str:
     """Table arena + Panda with gripper and mount, as robosuite's own table tasks assemble them."""
+    _quiet_robosuite()
     from robosuite.models import MujocoWorldBase
     from robosuite.models.arenas import TableArena
     from robosuite.models.bases import robot_base_factory
