@@ -11,9 +11,8 @@ import json
 from pathlib import Path
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from scenegen.assets.catalog import load_catalog
 from scenegen.check.geometry import CheckSettings
 from scenegen.propose.procedural import ProceduralSettings
 from scenegen.schema.condition import Condition
@@ -43,11 +42,6 @@ class PipelineConfig(BaseModel):
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
 
-    @model_validator(mode="after")
-    def _catalog_names(self):
-        self.proposer.validate_categories(load_catalog())
-        return self
-
     @property
     def proposal_cap(self) -> int:
         return self.max_proposals or 40 * self.n
@@ -58,12 +52,24 @@ class PipelineConfig(BaseModel):
         return hashlib.sha256(blob).hexdigest()
 
 
+def _fields_at(model: type[BaseModel], loc: tuple) -> list[str]:
+    """Field names of the (nested) model at ``loc`` of a recipe."""
+    for part in loc:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        annotation = getattr(field, "annotation", None)
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            break
+        model = annotation
+    return list(model.model_fields)
+
+
 def _format_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
     where = ".".join(str(p) for p in err["loc"]) or "(top level)"
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden":
-        msg = "unknown key; check the spelling against docs/pipelines.md"
+        valid = ", ".join(_fields_at(PipelineConfig, err["loc"][:-1]))
+        msg = f"unknown key; valid keys here: {valid} (docs/pipelines.md)"
     more = f" (+{len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
     return f"{path}: {where}: {msg}{more}"
 

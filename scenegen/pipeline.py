@@ -23,7 +23,7 @@ from scenegen.config import PipelineConfig
 from scenegen.manifest import Manifest, batch_source, write_manifest
 from scenegen.propose.base import PROPOSERS
 from scenegen.schema.scene import Rejection, SceneProposal, SceneRecord, SettledObject
-from scenegen.settle import contact_configuration, free_bodies, settle
+from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.store import BatchStore, atomic_write, scene_xml
 
 STAGES = ("propose", "check", "build", "settle", "store")
@@ -81,12 +81,14 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         adr = bodies[obj.name]
         pos, quat = settled.qpos[adr : adr + 3], settled.qpos[adr + 3 : adr + 7]
         moved = sum((a - b) ** 2 for a, b in zip(pos, obj.position, strict=True)) ** 0.5
+        rotated = rotation_angle(quat, obj.quat)
         objects.append(
             SettledObject(
                 **obj.model_dump(exclude={"position", "quat"}),
                 position=tuple(round(float(v), 6) for v in pos),
                 quat=tuple(round(float(v), 6) for v in quat),
                 moved=round(float(moved), 6),
+                rotated=round(rotated, 6),
             )
         )
     contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])

@@ -72,7 +72,9 @@ def free_bodies(model: mujoco.MjModel) -> list[tuple[str, int]]:
     return out
 
 
-def _rotation_angle(q1: np.ndarray, q2: np.ndarray) -> float:
+def rotation_angle(q1, q2) -> float:
+    """Angle (rad) between two orientations given as wxyz quaternions."""
+    q1, q2 = np.asarray(q1, float), np.asarray(q2, float)
     dot = abs(float(np.dot(q1, q2)) / (np.linalg.norm(q1) * np.linalg.norm(q2)))
     return 2.0 * math.acos(min(1.0, dot))
 
@@ -147,7 +149,7 @@ def settle(
         if drop > worst_drop:
             worst_drop, drop_who = drop, name
         move = float(np.linalg.norm(pos - np.asarray(obj.position)))
-        rot = _rotation_angle(quat, np.asarray(obj.quat))
+        rot = rotation_angle(quat, np.asarray(obj.quat))
         if move > worst_move:
             worst_move, move_who = move, name
         worst_rot = max(worst_rot, rot)
@@ -194,7 +196,9 @@ def passive_test(
     data.qpos[:] = qpos
     data.ctrl[:] = ctrl
     mujoco.mj_forward(model, data)
+    # Contacts inside the 0.5 mm margin have a positive distance: no penetration is depth 0.
     depth = max((-data.contact[i].dist for i in range(data.ncon)), default=0.0)
+    depth = max(depth, 0.0)
     bodies = free_bodies(model)
     start = {name: data.qpos[adr : adr + 3].copy() for name, adr in bodies}
     ee0 = data.body(EE_BODY).xpos.copy()

@@ -76,6 +76,16 @@ def scene_xml(
             name = asset_name(source)
             needed[name] = source
             element.set("file", name)
+    # to_xml() prints 6 significant digits (5 um at the table's height): write the settled state in full.
+    exact = {name: (qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]) for name, adr in objects.items()}
+    for element in root.iter("body"):
+        if element.get("name") in exact:
+            pos, quat = exact[element.get("name")]
+            element.set("pos", _floats(pos))
+            element.set("quat", _floats(quat))
+    for key in root.iter("key"):
+        key.set("qpos", _floats(qpos))
+        key.set("ctrl", _floats(ctrl))
     compiler = root.find("compiler")
     if compiler is None:
         compiler = ET.SubElement(root, "compiler")
@@ -85,6 +95,10 @@ def scene_xml(
     compiler.set("texturedir", f"../{ASSETS}/")
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n", needed
+
+
+def _floats(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
 
 
 def atomic_write(path: Path, data: bytes | str) -> None:

@@ -14,7 +14,6 @@ object is its centre-of-mass frame and ``inertial.pos`` is zero.
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ import numpy as np
 import trimesh
 import yaml
 
+from scenegen.assets.catalog import parts_key
 from scenegen.paths import ASSETS_DIR
 
 SEGMENTS = 40  # circle resolution: a 4 cm radius is off by < 0.5 mm at 40 segments
@@ -170,14 +170,7 @@ def export_obj(mesh: trimesh.Trimesh) -> bytes:
     return ("\n".join(lines) + "\n").encode()
 
 
-def parts_key(mesh_sha: str, params: dict) -> str:
-    import coacd
-
-    blob = json.dumps({"mesh": mesh_sha, "coacd": coacd_version(coacd), "params": params}, sort_keys=True)
-    return sha256_bytes(blob.encode())[:16]
-
-
-def coacd_version(coacd_module) -> str:
+def coacd_version() -> str:
     from importlib.metadata import version
 
     return version("coacd")
@@ -205,7 +198,7 @@ def hull_to_visual_distance(mesh: trimesh.Trimesh, parts: list[trimesh.Trimesh],
     union_mesh = trimesh.Trimesh(np.asarray(raw.vert_properties)[:, :3], np.asarray(raw.tri_verts))
     # Voids enclosed by the parts are shells with inward normals (negative volume): no contact can
     # reach them, so only the outer surface is compared.
-    shells = [c for c in union_mesh.split(only_watertight=False) if c.volume > 0]
+    shells = [c for c in union_mesh.split(only_watertight=False) if len(c.faces) >= 4 and c.volume > 0]
     union_mesh = trimesh.util.concatenate(shells)
     a, _ = trimesh.sample.sample_surface(mesh, n, seed=0)
     b, _ = trimesh.sample.sample_surface(union_mesh, n, seed=1)
@@ -276,8 +269,6 @@ def inertial(mesh: trimesh.Trimesh, density: float) -> dict:
 
 def build(out_dir: Path = ASSETS_DIR, only: set[str] | None = None) -> dict:
     """(Re)build meshes, convex parts and the catalog under ``out_dir``; returns the catalog."""
-    import coacd
-
     (out_dir / "meshes").mkdir(parents=True, exist_ok=True)
     (out_dir / "parts").mkdir(parents=True, exist_ok=True)
     entries = []
@@ -295,7 +286,7 @@ def build(out_dir: Path = ASSETS_DIR, only: set[str] | None = None) -> dict:
         mesh_sha = sha256_bytes(obj)
 
         params = {**COACD_DEFAULTS, **spec.coacd}
-        key = parts_key(mesh_sha, params)
+        key = parts_key(mesh_sha, coacd_version(), params)
         part_dir = out_dir / "parts" / spec.name / key
         if part_dir.exists():
             parts = [trimesh.load(p, process=False) for p in sorted(part_dir.glob("part_*.obj"))]
@@ -314,7 +305,7 @@ def build(out_dir: Path = ASSETS_DIR, only: set[str] | None = None) -> dict:
                 "mesh_sha256": mesh_sha,
                 "parts": {
                     "key": key,
-                    "coacd_version": coacd_version(coacd),
+                    "coacd_version": coacd_version(),
                     "params": params,
                     "files": [f"parts/{spec.name}/{key}/part_{i:03d}.obj" for i in range(len(parts))],
                 },

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -121,11 +122,21 @@ def _validate_files(catalog: Catalog, asset: Asset) -> None:
     vertices, faces = read_obj(data, where)
     if not _is_watertight(faces):
         raise CatalogError(f"{where}: mesh is not watertight (every edge must join two faces)")
+    if parts_key(asset.mesh_sha256, asset.parts.coacd_version, asset.parts.params) != asset.parts.key:
+        raise CatalogError(
+            f"{where}: convex parts were made for another mesh or coacd version; rebuild with `make assets`"
+        )
     for part in asset.parts.files:
         if not catalog.path(part).is_file():
             raise CatalogError(
                 f"asset {asset.name!r}: convex part {part} missing; rebuild with `make assets`"
             )
+
+
+def parts_key(mesh_sha: str, coacd_version: str, params: dict) -> str:
+    """Cache key of an asset's convex parts: (mesh sha256, coacd version, coacd parameters)."""
+    blob = json.dumps({"mesh": mesh_sha, "coacd": coacd_version, "params": params}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def read_obj(data: bytes, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:

@@ -91,12 +91,16 @@ class ProceduralSettings(BaseModel):
             raise ValueError("support_weights: 'table' needs a positive weight")
         return self
 
-    def validate_categories(self, catalog: Catalog) -> None:
-        for c in self.categories or ():
-            if c not in catalog.categories:
-                raise ValueError(
-                    f"categories: unknown category {c!r}; valid: {', '.join(catalog.categories)}"
-                )
+    @field_validator("categories")
+    @classmethod
+    def _known_categories(cls, categories: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        from scenegen.assets.catalog import load_catalog
+
+        valid = load_catalog().categories
+        for c in categories or ():
+            if c not in valid:
+                raise ValueError(f"unknown category {c!r}; valid categories: {', '.join(valid)}")
+        return categories
 
 
 def sample_lighting(rng: np.random.Generator, s: LightingSettings) -> Lighting:
@@ -160,7 +164,6 @@ class ProceduralProposer:
     """Domain randomization behind the proposer interface."""
 
     def __init__(self, settings: ProceduralSettings, catalog: Catalog):
-        settings.validate_categories(catalog)
         self.settings = settings
         self.catalog = catalog
         pool = settings.categories or catalog.categories

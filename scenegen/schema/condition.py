@@ -94,7 +94,7 @@ class Condition(BaseModel):
                         raise ValueError(f"text: tag {tag!r} is {state} in the text but {tags[tag]} in tags")
                     tags[tag] = state
                 merged["tags"] = tags
-            elif key in data and data[key] != value:
+            elif key in data and _canonical(key, data[key]) != _canonical(key, value):
                 raise ValueError(f"text: says {key}={value!r} but the field {key} is {data[key]!r}")
             else:
                 merged[key] = value
@@ -174,6 +174,8 @@ def parse_request(text: str) -> dict:
         if two in TAGS:
             word, i = two, i + 1
         if word in _NEGATIONS:
+            if negate:
+                raise ValueError("text: 'not' twice in a row; write 'not TAG' once")
             negate = True
         elif word in TAGS:
             out["tags"][word] = "forbidden" if negate else "required"
@@ -198,6 +200,14 @@ def parse_request(text: str) -> dict:
     if not out["tags"]:
         del out["tags"]
     return out
+
+
+def _canonical(key: str, value):
+    """A field value in comparable form: pose names become their joint angles (rounded to 1e-6 rad)."""
+    if key == "robot_pose":
+        pose = ROBOT_POSES.get(value, value) if isinstance(value, str) else value
+        return tuple(round(float(q), 6) for q in pose)
+    return value
 
 
 def _set_once(out: dict, key: str, value: str) -> None:

@@ -166,7 +166,11 @@ class SettledObject(ObjectPlacement):
 
 
 class SceneRecord(BaseModel):
-    """scene.json: everything needed to understand and replay one stored scene."""
+    """scene.json: everything needed to understand and replay one stored scene.
+
+    It holds no wall-clock data (timings go to the batch's timings.json), so the same recipe and seed
+    give byte-identical files.
+    """
 
     model_config = ConfigDict(extra="forbid")
 
@@ -187,4 +191,3 @@ class SceneRecord(BaseModel):
     settle: dict  # sim time, steps, max speeds at the end
     provenance: dict  # scenegen version, package versions, pipeline hash, catalog hash
     files: dict[str, str] = Field(default_factory=dict)  # relative path -> sha256
-    wall_clock: dict = Field(default_factory=dict)  # timings and dates: the only non-deterministic part

@@ -1,0 +1,21 @@
+"""Shared fixtures: one small demo batch, generated once per test session through the real CLI."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def demo_batch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A stored batch of 6 accepted scenes of pipelines/demo.yaml, seed 0 (real MuJoCo, ~10 s)."""
+    from scenegen.cli import main
+
+    out = tmp_path_factory.mktemp("demo_batch") / "batch"
+    pipeline = PROJECT_ROOT / "pipelines" / "demo.yaml"
+    code = main(["generate", str(pipeline), "--n", "6", "--seed", "0", "--out", str(out), "--quiet"])
+    assert code == 0, f"scenegen generate exited {code}"
+    return out
