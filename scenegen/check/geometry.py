@@ -59,12 +59,15 @@ def _result(check: str, passed: bool, label: str, value: float, threshold: float
 
 @functools.lru_cache(maxsize=256)
 def _convex_geometry(root, asset: str, part: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    vertices = convex_part_vertices(root, asset)[part] * scale
-    hull = ConvexHull(vertices)
-    verts = vertices[hull.vertices]
+    return _hull(convex_part_vertices(root, asset)[part] * scale)
+
+
+def _hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull of points: its vertices (V, 3) and triangles (F, 3) indexing them."""
+    hull = ConvexHull(points)
     remap = {old: new for new, old in enumerate(hull.vertices)}
     faces = np.array([[remap[i] for i in simplex] for simplex in hull.simplices])
-    return verts, faces
+    return points[hull.vertices], faces
 
 
 def _fcl_convex(verts: np.ndarray, faces: np.ndarray) -> fcl.Convex:
@@ -184,10 +187,7 @@ def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
         if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
             m = model.geom_dataid[g]
             verts = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
-            hull = ConvexHull(verts)
-            local = verts[hull.vertices]
-            remap = {old: new for new, old in enumerate(hull.vertices)}
-            faces = np.array([[remap[i] for i in s] for s in hull.simplices])
+            local, faces = _hull(verts)
             geom = _fcl_convex(local, faces)
         elif model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
             local = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
