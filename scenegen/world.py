@@ -16,7 +16,6 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -355,7 +354,6 @@ def initial_state(
     model: mujoco.MjModel, robot_pose: Sequence[float], objects: Sequence[ObjectPlacement]
 ) -> tuple[np.ndarray, np.ndarray]:
     """qpos and ctrl that put the robot at ``robot_pose`` (held, gripper open) and objects at their poses."""
-    data = mujoco.MjData(model)
     qpos = model.qpos0.copy()
     for name, q in zip(ARM_JOINTS, robot_pose, strict=True):
         qpos[model.joint(name).qposadr[0]] = q
@@ -373,12 +371,4 @@ def initial_state(
         jname = model.joint(target).name
         if jname in GRIPPER_OPEN:
             ctrl[i] = GRIPPER_OPEN[jname]
-    del data
     return qpos, ctrl
-
-
-def robot_asset_files(spec: mujoco.MjSpec) -> list[Path]:
-    """Absolute paths of every mesh and texture file the spec references."""
-    files = [Path(m.file) for m in spec.meshes if m.file]
-    files += [Path(t.file) for t in spec.textures if t.file]
-    return files
