@@ -18,8 +18,13 @@ and the distributions of the proposer. `generate` proposes scenes, rejects the i
 and stores each accepted scene as scene.json + scene.xml, with a log of every rejection and a
 batch manifest.
 
-example:
-  scenegen generate pipelines/demo.yaml --n 20 --seed 0 --out runs/demo
+Accepted scenes are rendered off-screen (RGB, depth in millimetres, instance segmentation per
+camera; MUJOCO_GL=egl works on CPU machines through Mesa). A batch killed at any point resumes
+exactly when the same command is run again; the output does not depend on --workers.
+
+examples:
+  scenegen generate pipelines/demo.yaml --n 20 --seed 0 --out runs/demo --workers 2
+  scenegen show runs/demo            # contact sheet: runs/demo/contact_sheet.png
 """
 
 
@@ -37,8 +42,27 @@ def _parser() -> argparse.ArgumentParser:
     gen.add_argument("--n", type=int, help="accepted scenes wanted (overrides the recipe's n)")
     gen.add_argument("--seed", type=int, help="batch seed (overrides the recipe's seed)")
     gen.add_argument("--max-proposals", type=int, help="give up after this many proposals (default 40 x n)")
-    gen.add_argument("--out", type=Path, help="output directory, new or empty (default runs/<name>)")
+    gen.add_argument(
+        "--out",
+        type=Path,
+        help="output directory (default runs/<name>); the same command on a killed batch resumes it",
+    )
+    gen.add_argument("--workers", type=int, default=1, help="processes for check/settle/render (default 1)")
+    gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    show = sub.add_parser(
+        "show",
+        help="write a contact sheet PNG of a batch",
+        description="Contact sheet of a batch: RGB thumbnails labelled with scene id, target and tags.",
+    )
+    show.add_argument("batch", type=Path, help="batch directory written by `scenegen generate`")
+    show.add_argument("--out", type=Path, help="PNG to write (default BATCH/contact_sheet.png)")
+    show.add_argument("--camera", help="camera name (default: the first camera of each scene)")
+    show.add_argument("--depth", action="store_true", help="add depth beside each RGB thumbnail")
+    show.add_argument("--seg", action="store_true", help="add segmentation beside each RGB thumbnail")
+    show.add_argument("--max", type=int, default=24, help="at most this many scenes (default 24)")
+    show.add_argument("--columns", type=int, default=4, help="thumbnails per row (default 4)")
     return parser
 
 
@@ -52,17 +76,29 @@ def _generate(args: argparse.Namespace) -> int:
     from scenegen.config import ConfigError, load_pipeline
 
     overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
+    if args.no_render:
+        overrides["render"] = False
+    if args.workers < 1:
+        return _fail(f"--workers {args.workers}: must be at least 1")
     try:
         config = load_pipeline(args.pipeline, overrides)
     except (ConfigError, CatalogError) as exc:
         return _fail(str(exc))
     out = args.out or Path("runs") / config.name
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        return _fail(f"--out {out}: already exists and is not empty; choose a new directory")
+    if config.render:
+        from scenegen.render import gl_problem
+
+        problem = gl_problem()
+        if problem:
+            return _fail(problem)
 
     from scenegen.pipeline import run_batch
+    from scenegen.store import StoreError
 
-    summary = run_batch(config, out, progress=not args.quiet)
+    try:
+        summary = run_batch(config, out, workers=args.workers, progress=not args.quiet)
+    except StoreError as exc:
+        return _fail(str(exc))
     rejected = sum(summary.rejections.values())
     print(
         f"{summary.accepted} scenes accepted of {summary.proposals} proposals "
@@ -81,15 +117,62 @@ def _generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _show(args: argparse.Namespace) -> int:
+    from scenegen.contact_sheet import SheetError, contact_sheet
+
+    try:
+        path = contact_sheet(
+            args.batch,
+            args.out,
+            camera=args.camera,
+            depth=args.depth,
+            seg=args.seg,
+            limit=args.max,
+            columns=args.columns,
+        )
+    except SheetError as exc:
+        return _fail(str(exc))
+    print(path)
+    return 0
+
+
+# Values mujoco accepts for MUJOCO_GL on Linux (mujoco/gl_context.py); anything else fails at import.
+_GL_BACKENDS = (
+    "egl",
+    "osmesa",
+    "glfw",
+    "glx",
+    "enable",
+    "enabled",
+    "on",
+    "true",
+    "1",
+    "disable",
+    "disabled",
+    "off",
+    "false",
+    "0",
+    "",
+)
+
+
 def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     parser = _parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
+    if args.command == "generate" and args.no_render and "mujoco" not in sys.modules:
+        os.environ["MUJOCO_GL"] = "disable"  # no GL is touched: a broken GL set-up cannot get in the way
+    backend = os.environ.get("MUJOCO_GL", "egl").lower().strip()
+    if backend not in _GL_BACKENDS:
+        return _fail(
+            f"MUJOCO_GL={backend}: not a GL backend mujoco knows; use MUJOCO_GL=egl (or --no-render)"
+        )
     if args.command == "generate":
         return _generate(args)
+    if args.command == "show":
+        return _show(args)
     return _fail(f"unknown command {args.command}")
 
 

@@ -28,7 +28,7 @@ class PipelineConfig(BaseModel):
 
     Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
     many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
-    (``kind: procedural`` and its settings); ``checks``; ``settle``.
+    (``kind: procedural`` and its settings, cameras included); ``checks``; ``settle``; ``render``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -41,6 +41,7 @@ class PipelineConfig(BaseModel):
     proposer: ProceduralSettings = ProceduralSettings()
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
+    render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
 
     @property
     def proposal_cap(self) -> int:

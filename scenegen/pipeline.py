@@ -1,19 +1,24 @@
-"""A batch run: propose -> check -> build -> settle -> store, in proposal-index order.
+"""A batch run: propose -> check -> build -> settle -> render -> store, committed in proposal-index order.
 
-:func:`process_proposal` is a pure function of a proposal (and the recipe): it returns either an
-accepted scene (record and MJCF) or a rejection. :func:`run_batch` feeds it proposals in index order
-until ``n`` scenes are accepted or the proposal cap is hit, and is the only writer of the store.
+:func:`process_proposal` is a pure function of a proposal and the recipe: it returns either an
+accepted scene (record, MJCF, images) or a rejection. It runs in this process (``workers=1``) or in
+a spawn-based pool whose workers each own one GL context. :func:`run_batch` is the only writer of the
+store and commits outcomes strictly in proposal-index order, so the accepted set is the N
+lowest-index accepted proposals whatever the number of workers, and a killed batch resumes exactly.
 """
 
 from __future__ import annotations
 
 import importlib.metadata
 import json
+import multiprocessing
 import time
-from collections import Counter
+from collections import Counter, deque
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mujoco
 import yaml
 
 from scenegen import __version__, world
@@ -21,34 +26,44 @@ from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.check.geometry import run_checks
 from scenegen.config import PipelineConfig
 from scenegen.manifest import Manifest, batch_source, write_manifest
-from scenegen.propose.base import PROPOSERS
-from scenegen.schema.scene import Rejection, SceneProposal, SceneRecord, SettledObject
+from scenegen.propose.base import PROPOSERS, Proposer
+from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.store import BatchStore, atomic_write, scene_xml
 
-STAGES = ("propose", "check", "build", "settle", "store")
+STAGES = ("propose", "check", "build", "settle", "render", "store")
 PROPOSAL_CHUNK = 8  # proposals drawn at a time (each is independent of the chunking)
 
 
 @dataclass
 class Outcome:
-    """Result of processing one proposal: a record + MJCF, or a rejection."""
+    """Result of processing one proposal: a record + MJCF + images, or a rejection."""
 
     proposal_index: int
     record: SceneRecord | None = None
     xml: str = ""
     needed: dict[str, str] = field(default_factory=dict)
+    images: dict[str, bytes] = field(default_factory=dict)
     rejection: Rejection | None = None
     seconds: dict[str, float] = field(default_factory=dict)
 
 
 def _versions() -> dict[str, str]:
-    names = ("mujoco", "robosuite", "trimesh", "coacd", "python-fcl", "numpy", "pydantic")
+    names = (
+        "mujoco",
+        "robosuite",
+        "trimesh",
+        "coacd",
+        "python-fcl",
+        "numpy",
+        "pydantic",
+        "opencv-python-headless",
+    )
     return {n: importlib.metadata.version(n) for n in names}
 
 
 def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: Catalog) -> Outcome:
-    """Check, build, settle one proposal; on success, the scene record and its MJCF."""
+    """Check, build, settle and render one proposal; on success, the scene record, MJCF and images."""
     out = Outcome(proposal.index)
     t0 = time.perf_counter()
     checks, ok = run_checks(proposal, catalog, config.checks)
@@ -74,6 +89,35 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         out.rejection = Rejection.from_check(proposal.index, failed)
         return out
 
+    segmentation: dict[str, int] = {}
+    if config.render:
+        from scenegen.render import RENDER_SETTINGS, frames_to_files, process_renderer, segmentation_ids
+
+        t0 = time.perf_counter()
+        data = mujoco.MjData(model)
+        data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
+        mujoco.mj_forward(model, data)
+        segmentation = segmentation_ids(
+            model, [o.name for o in proposal.objects], [f.name for f in proposal.furniture]
+        )
+        try:
+            frames = process_renderer().render(
+                model,
+                data,
+                [c.name for c in proposal.cameras],
+                segmentation,
+                [(c.width, c.height) for c in proposal.cameras],
+            )
+        except Exception as exc:  # noqa: BLE001 - a scene that cannot be rendered is rejected, not fatal
+            result = CheckResult(
+                stage="render", check="render", passed=False, label="render_failed", detail=str(exc)[:200]
+            )
+            out.rejection = Rejection.from_check(proposal.index, result)
+            return out
+        for cam, frame in zip(proposal.cameras, frames, strict=True):
+            out.images.update(frames_to_files(cam.name, frame))
+        out.seconds["render"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     bodies = dict(free_bodies(model))
     objects = []
@@ -81,14 +125,13 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         adr = bodies[obj.name]
         pos, quat = settled.qpos[adr : adr + 3], settled.qpos[adr + 3 : adr + 7]
         moved = sum((a - b) ** 2 for a, b in zip(pos, obj.position, strict=True)) ** 0.5
-        rotated = rotation_angle(quat, obj.quat)
         objects.append(
             SettledObject(
                 **obj.model_dump(exclude={"position", "quat"}),
                 position=tuple(round(float(v), 6) for v in pos),
                 quat=tuple(round(float(v), 6) for v in quat),
                 moved=round(float(moved), 6),
-                rotated=round(rotated, 6),
+                rotated=round(rotation_angle(quat, obj.quat), 6),
             )
         )
     contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
@@ -104,6 +147,8 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         furniture=proposal.furniture,
         lighting=proposal.lighting,
         cameras=tuple(_camera_entry(cam) for cam in proposal.cameras),
+        segmentation=segmentation,
+        render=RENDER_SETTINGS if config.render else None,
         contacts=tuple(contacts),
         contact_options=world.CONTACT_OPTIONS,
         checks=tuple(checks),
@@ -130,7 +175,47 @@ def _camera_entry(cam) -> dict:
             "position": list(cam.position),
             "rotation": [[round(float(v), 7) for v in row] for row in rot],
         },
+        "images": {k: f"{cam.name}_{k}.png" for k in ("rgb", "depth", "seg")},
     }
+
+
+# ------------------------------------------------------------------------------------- workers
+
+_WORKER: tuple[PipelineConfig, Catalog] | None = None
+
+
+def _init_worker(config_json: str) -> None:
+    """Pool initializer: load the recipe and catalog once, and open this worker's GL context."""
+    global _WORKER
+    config = PipelineConfig.model_validate_json(config_json)
+    _WORKER = (config, load_catalog())
+    if config.render:
+        from scenegen.render import process_renderer
+
+        process_renderer()
+
+
+def _work(proposal: SceneProposal) -> Outcome:
+    config, catalog = _WORKER
+    return process_proposal(proposal, config, catalog)
+
+
+def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterator[SceneProposal]:
+    for first in range(start, config.proposal_cap, PROPOSAL_CHUNK):
+        yield from proposer.propose(
+            config.condition, range(first, min(first + PROPOSAL_CHUNK, config.proposal_cap)), config.seed
+        )
+
+
+def _in_order(pool, proposals: Iterator[SceneProposal], window: int) -> Iterator[Outcome]:
+    """Outcomes in proposal order, with at most ``window`` proposals in flight."""
+    pending: deque = deque()
+    for proposal in proposals:
+        pending.append(pool.apply_async(_work, (proposal,)))
+        if len(pending) >= window:
+            yield pending.popleft().get()
+    while pending:
+        yield pending.popleft().get()
 
 
 @dataclass
@@ -143,32 +228,43 @@ class BatchSummary:
     wall: float
 
 
-def run_batch(config: PipelineConfig, out: Path, progress: bool = True) -> BatchSummary:
-    """Generate ``config.n`` accepted scenes into ``out`` (which must be new or empty)."""
+def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: bool = True) -> BatchSummary:
+    """Generate ``config.n`` accepted scenes into ``out``, resuming a killed batch of the same recipe."""
     from tqdm import tqdm
 
     catalog = load_catalog()
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
     store = BatchStore(out)
-    store.prepare(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     seconds = dict.fromkeys(STAGES, 0.0)
-    rejections: Counter = Counter()
-    accepted = index = 0
+    rejections, accepted, index = Counter(state.rejections), state.accepted, state.next_index
+    done_before = state.accepted + sum(state.rejections.values())
     start = time.perf_counter()
-    bar = tqdm(total=config.n, desc=f"{config.name}", unit="scene", disable=not progress, dynamic_ncols=True)
-    while accepted < config.n and index < config.proposal_cap:
-        t0 = time.perf_counter()
-        chunk = range(index, min(index + PROPOSAL_CHUNK, config.proposal_cap))
-        proposals = proposer.propose(config.condition, chunk, config.seed)
-        seconds["propose"] += time.perf_counter() - t0
-        for proposal in proposals:
-            index = proposal.index + 1
-            outcome = process_proposal(proposal, config, catalog)
+    bar = tqdm(
+        total=config.n,
+        initial=accepted,
+        desc=config.name,
+        unit="scene",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
+
+    proposals = _timed(_proposals(proposer, config, index), seconds)
+    pool = None
+    if workers > 1:
+        pool = multiprocessing.get_context("spawn").Pool(workers, _init_worker, (config.model_dump_json(),))
+        outcomes = _in_order(pool, proposals, window=4 * workers)
+    else:
+        _init_worker(config.model_dump_json())
+        outcomes = map(_work, proposals)
+    try:
+        for outcome in outcomes if accepted < config.n else ():
+            index = outcome.proposal_index + 1
             for stage, s in outcome.seconds.items():
                 seconds[stage] += s
             t0 = time.perf_counter()
             if outcome.record is not None:
-                store.commit_scene(outcome.record, outcome.xml, outcome.needed)
+                store.commit_scene(outcome.record, outcome.xml, outcome.needed, outcome.images)
                 accepted += 1
                 bar.update(1)
             else:
@@ -181,7 +277,11 @@ def run_batch(config: PipelineConfig, out: Path, progress: bool = True) -> Batch
             )
             if accepted == config.n:
                 break
-    bar.close()
+    finally:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+        bar.close()
     wall = time.perf_counter() - start
     source = batch_source(
         out,
@@ -192,10 +292,23 @@ def run_batch(config: PipelineConfig, out: Path, progress: bool = True) -> Batch
         catalog_sha=catalog.sha256,
     )
     write_manifest(out / "manifest.yaml", Manifest(kind="batch", sources=[source]))
+    proposals_done = source.counts.proposals
     timing = {
         "wall": round(wall, 3),
+        "workers": workers,
         "stages": {k: round(v, 3) for k, v in seconds.items()},
-        "proposals": index,
+        "proposals_this_run": proposals_done - done_before,
     }
     atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
-    return BatchSummary(out, accepted, index, rejections, seconds, wall)
+    return BatchSummary(out, accepted, proposals_done, rejections, seconds, wall)
+
+
+def _timed(proposals: Iterator[SceneProposal], seconds: dict[str, float]) -> Iterator[SceneProposal]:
+    """Pass proposals through, adding the time spent making them to ``seconds['propose']``."""
+    while True:
+        t0 = time.perf_counter()
+        proposal = next(proposals, None)
+        seconds["propose"] += time.perf_counter() - t0
+        if proposal is None:
+            return
+        yield proposal

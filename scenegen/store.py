@@ -22,6 +22,8 @@ import json
 import os
 import shutil
 import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
@@ -111,16 +113,62 @@ def atomic_write(path: Path, data: bytes | str) -> None:
     os.replace(tmp, path)
 
 
+class StoreError(ValueError):
+    """The output directory cannot take this batch; the message names it and what to do."""
+
+
+@dataclass
+class ResumeState:
+    """Where a batch stands: the next proposal index, scenes stored, rejections by label."""
+
+    next_index: int = 0
+    accepted: int = 0
+    rejections: Counter = field(default_factory=Counter)
+
+
 class BatchStore:
     """Writer of one batch directory."""
 
     def __init__(self, root: Path):
         self.root = Path(root)
 
-    def prepare(self, pipeline_yaml: str) -> None:
-        self.root.mkdir(parents=True, exist_ok=True)
-        (self.root / ASSETS).mkdir(exist_ok=True)
-        atomic_write(self.root / "pipeline.yaml", pipeline_yaml)
+    def open(self, pipeline_yaml: str) -> ResumeState:
+        """Start a new batch, or pick up a killed one of the same recipe exactly where it stopped.
+
+        Everything after the last complete commit is undone: temporary directories and files, a
+        torn last line of the index or rejection log, a scene directory whose index row was never
+        written. Since every stage is a pure function of its proposal, redoing that work gives the
+        same bytes as an uninterrupted run.
+        """
+        root = self.root
+        if root.exists() and not root.is_dir():
+            raise StoreError(f"--out {root}: is a file; choose a directory")
+        if not root.exists() or not any(root.iterdir()):
+            root.mkdir(parents=True, exist_ok=True)
+            (root / ASSETS).mkdir(exist_ok=True)
+            atomic_write(root / "pipeline.yaml", pipeline_yaml)
+            return ResumeState()
+        recipe = root / "pipeline.yaml"
+        if not recipe.is_file():
+            raise StoreError(
+                f"--out {root}: already exists and is not a scenegen batch; choose a new directory"
+            )
+        if recipe.read_text() != pipeline_yaml:
+            raise StoreError(
+                f"--out {root}: holds a batch of another recipe or overrides; rerun the same command to "
+                "resume it, or choose a new directory"
+            )
+        for leftover in [*root.glob(".tmp_*"), *root.glob(".*.tmp*"), *(root / ASSETS).glob(".*.tmp*")]:
+            shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
+        (root / ASSETS).mkdir(exist_ok=True)
+        index = _recover_jsonl(root / INDEX)
+        rejections = _recover_jsonl(root / REJECTIONS)
+        indexed = {row["scene_id"] for row in index}
+        for entry in root.iterdir():
+            if entry.is_dir() and entry.name.startswith("scene_") and entry.name not in indexed:
+                shutil.rmtree(entry)
+        last = max((row["proposal_index"] for row in [*index, *rejections]), default=-1)
+        return ResumeState(last + 1, len(index), Counter(row["label"] for row in rejections))
 
     def _ensure_assets(self, needed: dict[str, str]) -> None:
         for name, source in needed.items():
@@ -130,7 +178,9 @@ class BatchStore:
                 shutil.copyfile(source, tmp)
                 os.replace(tmp, dest)
 
-    def commit_scene(self, record: SceneRecord, xml: str, needed: dict[str, str]) -> SceneRecord:
+    def commit_scene(
+        self, record: SceneRecord, xml: str, needed: dict[str, str], images: dict[str, bytes]
+    ) -> SceneRecord:
         """Write one scene atomically and append its index row; returns the record with file hashes."""
         self._ensure_assets(needed)
         final = self.root / record.scene_id
@@ -140,6 +190,9 @@ class BatchStore:
         tmp.mkdir()
         (tmp / "scene.xml").write_text(xml)
         files = {"scene.xml": sha256_file(tmp / "scene.xml")}
+        for name, data in sorted(images.items()):
+            (tmp / name).write_bytes(data)
+            files[name] = hashlib.sha256(data).hexdigest()
         files.update({f"../{ASSETS}/{n}": source_sha256(src) for n, src in sorted(needed.items())})
         record = record.model_copy(update={"files": files})
         text = record.model_dump_json(indent=1) + "\n"
@@ -165,6 +218,17 @@ class BatchStore:
             f.write(json.dumps(row, sort_keys=True) + "\n")
             f.flush()
             os.fsync(f.fileno())
+
+
+def _recover_jsonl(path: Path) -> list[dict]:
+    """Rows of an append-only log, cutting a torn last line (a write killed midway) off the file."""
+    if not path.exists():
+        return []
+    data = path.read_bytes()
+    keep = data[: data.rfind(b"\n") + 1]
+    if keep != data:
+        atomic_write(path, keep)
+    return [json.loads(line) for line in keep.decode().splitlines() if line.strip()]
 
 
 def read_jsonl(path: Path) -> list[dict]:

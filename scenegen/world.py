@@ -230,8 +230,12 @@ def build_world(
     spec = robot_spec()
     for piece in furniture:
         _add_furniture(spec, piece)
+    # Every catalog mesh is declared, used or not, in catalog order: all scenes of a catalog then share
+    # one mesh table, so a renderer can keep one MjrContext for all of them (render.py).
+    for asset in catalog.assets:
+        _add_asset_meshes(spec, catalog, asset, {1.0})
     for asset in {obj.asset: catalog.get(obj.asset) for obj in objects}.values():
-        _add_asset_meshes(spec, catalog, asset, {o.scale for o in objects if o.asset == asset.name})
+        _add_asset_meshes(spec, catalog, asset, {o.scale for o in objects if o.asset == asset.name} - {1.0})
     for obj in objects:
         _add_object(spec, catalog.get(obj.asset), obj)
     if lighting is not None:

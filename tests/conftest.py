@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+# Off-screen rendering through EGL; this must be set before any test module imports mujoco.
+os.environ.setdefault("MUJOCO_GL", "egl")
 
 import pytest
 

@@ -126,7 +126,8 @@ def test_batch_has_the_requested_scenes_and_no_leftovers(demo_batch: Path):
     dirs = scene_dirs(demo_batch)
     assert len(dirs) == N_SCENES
     for d in dirs:
-        assert sorted(p.name for p in d.iterdir()) == ["scene.json", "scene.xml"], d
+        images = [f"{cam}_{kind}.png" for cam in ("front", "side") for kind in ("depth", "rgb", "seg")]
+        assert sorted(p.name for p in d.iterdir()) == sorted([*images, "scene.json", "scene.xml"]), d
         record = read_record(d)
         assert d.name == record["scene_id"] == f"scene_{record['proposal_index']:06d}"
     top = {p.name for p in demo_batch.iterdir()}
@@ -298,7 +299,7 @@ def test_xml_references_assets_only_inside_the_batch(scenes, demo_batch: Path):
             assert "/" not in name and "\\" not in name and not Path(name).is_absolute(), name
             assert (scene / ASSET_DIR / name).is_file(), f"{scene.name}: {name} missing from _assets"
             referenced.add(ASSET_DIR + name)
-        listed = {k for k in record["files"] if k != "scene.xml"}
+        listed = {k for k in record["files"] if k.startswith(ASSET_DIR)}
         assert referenced == listed, f"{scene.name}: files in scene.json differ from those scene.xml uses"
 
 
@@ -359,7 +360,7 @@ def test_rejections_and_acceptances_partition_the_proposals(demo_batch: Path):
     for row in rejections:
         assert row["label"] in REJECTION_LABELS, row
     timings = json.loads((demo_batch / "timings.json").read_text())
-    assert timings["proposals"] == len(everything)
+    assert timings["proposals_this_run"] == len(everything)
 
 
 def test_manifest_counts_equal_the_files(demo_batch: Path):

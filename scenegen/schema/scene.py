@@ -185,6 +185,8 @@ class SceneRecord(BaseModel):
     furniture: tuple[FurniturePlacement, ...]
     lighting: Lighting
     cameras: tuple[dict, ...]  # Camera fields + intrinsics + extrinsics (convention named)
+    segmentation: dict[str, int] = Field(default_factory=dict)  # instance name -> id in *_seg.png
+    render: dict | None = None  # render settings used (None: not rendered)
     contacts: tuple[Contact, ...]
     contact_options: dict  # MuJoCo options used while settling (also embedded in scene.xml)
     checks: tuple[CheckResult, ...]
