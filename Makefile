@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast lint assets clean
+.PHONY: setup demo test test-fast lint assets bench clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,9 +14,10 @@ $(BIN)/scenegen: pyproject.toml
 
 setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)
 
-demo: setup  ## generate the demo batch into runs/demo (replaces an earlier one)
+demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), then its contact sheet
 	rm -rf runs/demo
-	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo
+	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo --workers 2
+	$(BIN)/scenegen show runs/demo
 
 test: setup  ## the whole test suite, as CI runs it
 	$(BIN)/python -m pytest -q
@@ -27,6 +28,9 @@ test-fast: setup  ## everything but the slow end-to-end tests
 lint: setup
 	$(BIN)/ruff check scenegen tests benchmarks
 	$(BIN)/ruff format --check scenegen tests benchmarks
+
+bench: setup  ## pipeline throughput with 1 and 2 workers (benchmarks/pipeline_throughput.py)
+	$(BIN)/python benchmarks/pipeline_throughput.py
 
 assets: setup  ## rebuild assets/ (meshes, convex parts, catalog); coacd runs only for changed meshes
 	$(BIN)/python -m scenegen.assets.authoring

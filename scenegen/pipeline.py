@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import multiprocessing
+import os
 import time
 from collections import Counter, deque
 from collections.abc import Iterator
@@ -184,9 +185,12 @@ def _camera_entry(cam) -> dict:
 _WORKER: tuple[PipelineConfig, Catalog] | None = None
 
 
-def _init_worker(config_json: str) -> None:
+def _init_worker(config_json: str, pooled: bool = False) -> None:
     """Pool initializer: load the recipe and catalog once, and open this worker's GL context."""
     global _WORKER
+    if pooled:
+        # Mesa's llvmpipe rasterizes on every core by default; with one worker per core that thrashes.
+        os.environ.setdefault("LP_NUM_THREADS", "1")
     config = PipelineConfig.model_validate_json(config_json)
     _WORKER = (config, load_catalog())
     if config.render:
@@ -225,6 +229,7 @@ class BatchSummary:
     proposals: int
     rejections: Counter
     seconds: dict[str, float]
+    accepted_seconds: dict[str, float]
     wall: float
 
 
@@ -236,7 +241,8 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
     store = BatchStore(out)
     state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
-    seconds = dict.fromkeys(STAGES, 0.0)
+    seconds = dict.fromkeys(STAGES, 0.0)  # all proposals, summed over workers
+    accepted_seconds = dict.fromkeys(STAGES, 0.0)  # accepted scenes only
     rejections, accepted, index = Counter(state.rejections), state.accepted, state.next_index
     done_before = state.accepted + sum(state.rejections.values())
     start = time.perf_counter()
@@ -252,7 +258,8 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
     proposals = _timed(_proposals(proposer, config, index), seconds)
     pool = None
     if workers > 1:
-        pool = multiprocessing.get_context("spawn").Pool(workers, _init_worker, (config.model_dump_json(),))
+        spawn = multiprocessing.get_context("spawn")
+        pool = spawn.Pool(workers, _init_worker, (config.model_dump_json(), True))
         outcomes = _in_order(pool, proposals, window=4 * workers)
     else:
         _init_worker(config.model_dump_json())
@@ -266,6 +273,8 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
             if outcome.record is not None:
                 store.commit_scene(outcome.record, outcome.xml, outcome.needed, outcome.images)
                 accepted += 1
+                for stage, s in outcome.seconds.items():
+                    accepted_seconds[stage] += s
                 bar.update(1)
             else:
                 store.log_rejection(outcome.rejection)
@@ -300,7 +309,7 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
         "proposals_this_run": proposals_done - done_before,
     }
     atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
-    return BatchSummary(out, accepted, proposals_done, rejections, seconds, wall)
+    return BatchSummary(out, accepted, proposals_done, rejections, seconds, accepted_seconds, wall)
 
 
 def _timed(proposals: Iterator[SceneProposal], seconds: dict[str, float]) -> Iterator[SceneProposal]:
