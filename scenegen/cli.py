@@ -169,6 +169,14 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(
             f"MUJOCO_GL={backend}: not a GL backend mujoco knows; use MUJOCO_GL=egl (or --no-render)"
         )
+    try:
+        import mujoco  # noqa: F401 - a GL backend that cannot load fails here
+    except Exception as exc:  # noqa: BLE001
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        return _fail(
+            f"MUJOCO_GL={backend}: mujoco cannot load this GL backend ({reason}); "
+            "use MUJOCO_GL=egl (or --no-render)"
+        )
     if args.command == "generate":
         return _generate(args)
     if args.command == "show":

@@ -46,7 +46,7 @@ def _seg_view(seg: np.ndarray) -> np.ndarray:
 
 
 def _read(path: Path, flags: int) -> np.ndarray:
-    image = cv2.imread(str(path), flags)
+    image = cv2.imread(str(path), flags) if path.is_file() else None
     if image is None:
         raise SheetError(f"{path}: missing or unreadable image; was the batch generated with --no-render?")
     return image

@@ -147,7 +147,7 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         objects=tuple(objects),
         furniture=proposal.furniture,
         lighting=proposal.lighting,
-        cameras=tuple(_camera_entry(cam) for cam in proposal.cameras),
+        cameras=tuple(_camera_entry(cam, config.render) for cam in proposal.cameras),
         segmentation=segmentation,
         render=RENDER_SETTINGS if config.render else None,
         contacts=tuple(contacts),
@@ -166,7 +166,7 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
     return out
 
 
-def _camera_entry(cam) -> dict:
+def _camera_entry(cam, rendered: bool = True) -> dict:
     rot = world.camera_rotation(cam)
     return {
         **cam.model_dump(mode="json"),
@@ -176,7 +176,7 @@ def _camera_entry(cam) -> dict:
             "position": list(cam.position),
             "rotation": [[round(float(v), 7) for v in row] for row in rot],
         },
-        "images": {k: f"{cam.name}_{k}.png" for k in ("rgb", "depth", "seg")},
+        **({"images": {k: f"{cam.name}_{k}.png" for k in ("rgb", "depth", "seg")}} if rendered else {}),
     }
 
 

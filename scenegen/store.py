@@ -78,6 +78,7 @@ def scene_xml(
             name = asset_name(source)
             needed[name] = source
             element.set("file", name)
+            element.attrib.pop("content_type", None)
     # to_xml() prints 6 significant digits (5 um at the table's height): write the settled state in full.
     exact = {name: (qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]) for name, adr in objects.items()}
     for element in root.iter("body"):
@@ -85,6 +86,19 @@ def scene_xml(
             pos, quat = exact[element.get("name")]
             element.set("pos", _floats(pos))
             element.set("quat", _floats(quat))
+    cams = {c.name: c for c in spec.cameras}
+    for element in root.iter("camera"):
+        cam = cams.get(element.get("name"))
+        if cam is not None:
+            element.set("pos", _floats(cam.pos))
+            element.set("quat", _floats(cam.quat))
+    lights = {light.name: light for light in spec.lights}
+    for element in root.iter("light"):
+        light = lights.get(element.get("name"))
+        if light is not None:
+            element.set("pos", _floats(light.pos))
+            element.set("dir", _floats(light.dir))
+            element.set("diffuse", _floats(light.diffuse))
     for key in root.iter("key"):
         key.set("qpos", _floats(qpos))
         key.set("ctrl", _floats(ctrl))

@@ -1,0 +1,350 @@
+"""Workers and resume: a batch is the same bytes whatever the number of workers and wherever it was killed.
+
+Every batch here is made by the real command line in a fresh process (``python -m scenegen.cli
+generate``), with the demo recipe's cameras shrunk to 160x120 to keep rendering cheap. A killed
+batch is killed the hard way, SIGKILL to the whole process group (coordinator and pool workers), at
+several points, then resumed by running the same command again; the result must equal an
+uninterrupted run byte for byte (timings.json aside, which holds wall-clock times).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from scenegen.cli import main
+from scenegen.propose.procedural import DEFAULT_CAMERAS
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEMO = REPO_ROOT / "pipelines" / "demo.yaml"
+N = 6
+SEED = 0
+NOT_COMPARED = {"timings.json"}  # wall-clock times
+USAGE_ERROR = 2
+PREFIX = "scenegen: error: "
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def small_recipe(path: Path, size: tuple[int, int] = (160, 120)) -> Path:
+    """pipelines/demo.yaml with two small cameras (front, side) at the default poses."""
+    recipe = yaml.safe_load(DEMO.read_text())
+    recipe["proposer"]["cameras"] = [
+        {
+            "name": cam.name,
+            "position": list(cam.position),
+            "lookat": list(cam.lookat),
+            "width": size[0],
+            "height": size[1],
+        }
+        for cam in DEFAULT_CAMERAS
+    ]
+    path.write_text(yaml.safe_dump(recipe, sort_keys=False))
+    return path
+
+
+def generate_cmd(recipe: Path, out: Path, workers: int, n: int = N, seed: int = SEED) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "scenegen.cli",
+        "generate",
+        str(recipe),
+        "--n",
+        str(n),
+        "--seed",
+        str(seed),
+        "--out",
+        str(out),
+        "--workers",
+        str(workers),
+        "--quiet",
+    ]
+
+
+def run_to_completion(cmd: list[str]) -> subprocess.CompletedProcess:
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, f"{' '.join(cmd)} exited {result.returncode}:\n{result.stderr}"
+    assert "Traceback" not in result.stderr, result.stderr
+    return result
+
+
+def snapshot(batch: Path) -> dict[str, str]:
+    """sha256 of every file under the batch (relative path -> digest), timings.json aside."""
+    return {
+        str(p.relative_to(batch)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(batch.rglob("*"))
+        if p.is_file() and p.name not in NOT_COMPARED
+    }
+
+
+def tree(batch: Path) -> list[str]:
+    """Every path under the batch, directories included."""
+    return sorted(str(p.relative_to(batch)) + ("/" if p.is_dir() else "") for p in batch.rglob("*"))
+
+
+def leftovers(batch: Path) -> list[str]:
+    return [p for p in tree(batch) if ".tmp" in Path(p).name]
+
+
+def read_rows(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def assert_same_batch(got: Path, expected: Path) -> None:
+    """Same files with the same bytes (timings.json aside), nothing else, no duplicate rows."""
+    assert not leftovers(got), f"temporary files left: {leftovers(got)}"
+    scenes = sorted(p.name for p in got.iterdir() if p.name.startswith("scene_"))
+    assert scenes == sorted(p.name for p in expected.iterdir() if p.name.startswith("scene_"))
+    assert len(scenes) == N
+    for log in ("index.jsonl", "rejections.jsonl"):
+        indices = [row["proposal_index"] for row in read_rows(got / log)]
+        assert len(indices) == len(set(indices)), f"{log}: duplicate rows {indices}"
+    assert tree(got) == tree(expected), (
+        f"only in {got.name}: {sorted(set(tree(got)) - set(tree(expected)))}; "
+        f"only in {expected.name}: {sorted(set(tree(expected)) - set(tree(got)))}"
+    )
+    a, b = snapshot(got), snapshot(expected)
+    differ = sorted(k for k in a if a[k] != b.get(k))
+    assert not differ, f"files differ from the uninterrupted run: {differ}"
+
+
+def group_members(pgid: int) -> list[int]:
+    """Live (not zombie) processes of a process group, from /proc."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:
+            continue
+        fields = text[text.rfind(")") + 2 :].split()
+        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
+            alive.append(int(stat.parent.name))
+    return alive
+
+
+def count_rows(path: Path) -> int:
+    try:
+        return path.read_bytes().count(b"\n")
+    except FileNotFoundError:
+        return 0
+
+
+def start_and_kill(cmd: list[str], ready, timeout: float = 180.0) -> dict:
+    """Start ``cmd`` in its own process group, SIGKILL the whole group once ``ready()`` holds.
+
+    Returns where the kill landed; fails if the group is not entirely dead afterwards.
+    """
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    pgid = proc.pid
+    deadline = time.monotonic() + timeout
+    try:
+        while not ready() and proc.poll() is None:
+            assert time.monotonic() < deadline, "kill point never reached"
+            time.sleep(0.01)
+        finished_first = proc.poll() is not None
+        os.killpg(pgid, signal.SIGKILL)
+    except ProcessLookupError:
+        finished_first = True
+    finally:
+        if proc.poll() is None:
+            try:
+                os.killpg(pgid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    proc.wait(timeout=30)
+    if not finished_first:
+        assert proc.returncode == -signal.SIGKILL, proc.returncode
+    deadline = time.monotonic() + 15
+    while group_members(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not group_members(pgid), f"processes of the killed group still alive: {group_members(pgid)}"
+    return {"finished_before_kill": finished_first}
+
+
+# ---------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="module")
+def recipe(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return small_recipe(tmp_path_factory.mktemp("recipe") / "small.yaml")
+
+
+@pytest.fixture(scope="module")
+def reference(recipe: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The uninterrupted batch: N scenes, 2 workers."""
+    out = tmp_path_factory.mktemp("reference") / "batch"
+    run_to_completion(generate_cmd(recipe, out, workers=2))
+    return out
+
+
+@pytest.fixture(scope="module")
+def single_worker(recipe: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("single") / "batch"
+    run_to_completion(generate_cmd(recipe, out, workers=1))
+    return out
+
+
+# ---------------------------------------------------------------- workers
+
+
+def test_reference_batch_is_complete(reference: Path):
+    rows = read_rows(reference / "index.jsonl")
+    assert len(rows) == N
+    rejected = read_rows(reference / "rejections.jsonl")
+    assert rejected, "the recipe should reject some proposals, or resume points are not all covered"
+    for row in rows:
+        scene = reference / row["scene_id"]
+        names = sorted(p.name for p in scene.iterdir())
+        images = sorted(f"{c}_{k}.png" for c in ("front", "side") for k in ("rgb", "depth", "seg"))
+        assert names == sorted([*images, "scene.json", "scene.xml"]), names
+    timings = json.loads((reference / "timings.json").read_text())
+    assert timings["workers"] == 2
+
+
+def test_one_and_two_workers_give_identical_batches(reference: Path, single_worker: Path):
+    assert json.loads((single_worker / "timings.json").read_text())["workers"] == 1
+    assert_same_batch(single_worker, reference)
+
+
+# ---------------------------------------------------------------- SIGKILL and resume
+
+
+def test_sigkill_after_two_scenes_resumes_exactly(recipe: Path, reference: Path, tmp_path: Path):
+    out = tmp_path / "batch"
+    cmd = generate_cmd(recipe, out, workers=2)
+    where = start_and_kill(cmd, lambda: count_rows(out / "index.jsonl") >= 2)
+    assert not where["finished_before_kill"], "the batch finished before it could be killed"
+    stored = count_rows(out / "index.jsonl")
+    assert 2 <= stored <= N
+    run_to_completion(cmd)
+    assert_same_batch(out, reference)
+
+
+def test_sigkill_right_after_start_resumes_exactly(recipe: Path, reference: Path, tmp_path: Path):
+    out = tmp_path / "batch"
+    cmd = generate_cmd(recipe, out, workers=2)
+    where = start_and_kill(cmd, lambda: (out / "pipeline.yaml").exists())
+    assert not where["finished_before_kill"]
+    assert (out / "pipeline.yaml").is_file()
+    assert count_rows(out / "index.jsonl") == 0, "killed right after start, yet scenes were stored"
+    run_to_completion(cmd)
+    assert_same_batch(out, reference)
+
+
+@pytest.mark.slow
+def test_repeated_sigkills_at_fixed_delays_resume_exactly(recipe: Path, reference: Path, tmp_path: Path):
+    """Killed again and again at fixed delays after each start (points spread over start-up, the first
+    rejections and the first commits on this machine), then run to completion."""
+    out = tmp_path / "batch"
+    cmd = generate_cmd(recipe, out, workers=2)
+    landed = []
+    for delay in (2.0, 4.2, 5.7, 6.9, 3.3):
+        start = time.monotonic()
+        where = start_and_kill(cmd, lambda d=delay, s=start: time.monotonic() - s >= d)
+        landed.append((delay, count_rows(out / "index.jsonl"), count_rows(out / "rejections.jsonl"), where))
+    assert any(not w["finished_before_kill"] for *_, w in landed), landed
+    run_to_completion(cmd)
+    assert_same_batch(out, reference)
+
+
+# ---------------------------------------------------------------- resume from a damaged batch
+
+
+def killed_copy(reference: Path, dst: Path, torn: str) -> Path:
+    """A copy of the finished batch as a kill would have left it while writing a row of ``torn``.
+
+    Rows from the cut on are gone, half of the next row of ``torn`` is at the end of that file
+    without a newline; scene directories after the cut stay (renamed into place, never indexed);
+    a stray temporary scene directory and temporary files lie around; manifest.yaml is stale.
+    """
+    shutil.copytree(reference, dst)
+    index = (dst / "index.jsonl").read_text().splitlines(keepends=True)
+    rejections = (dst / "rejections.jsonl").read_text().splitlines(keepends=True)
+    rows = sorted(
+        [(json.loads(line)["proposal_index"], "index.jsonl", line) for line in index]
+        + [(json.loads(line)["proposal_index"], "rejections.jsonl", line) for line in rejections]
+    )
+    first_scene = min(p for p, name, _ in rows if name == "index.jsonl")
+    # The cut: the 4th scene for a torn index row, the first rejection after a scene otherwise.
+    if torn == "index.jsonl":
+        cut = [p for p, name, _ in rows if name == "index.jsonl"][3]
+    else:
+        cut = min(p for p, name, _ in rows if name == torn and p > first_scene)
+    for name in ("index.jsonl", "rejections.jsonl"):
+        kept = "".join(line for p, n, line in rows if n == name and p < cut)
+        torn_row = next(line for p, n, line in rows if n == name and p == cut) if name == torn else ""
+        (dst / name).write_text(kept + torn_row[: len(torn_row) // 2])
+    assert not (dst / torn).read_text().endswith("\n")
+    stray = dst / ".tmp_scene_000099"
+    stray.mkdir()
+    (stray / "scene.json").write_text('{"half": ')
+    (dst / ".index.jsonl.tmp4242").write_text("partial")
+    asset = next((dst / "_assets").iterdir())
+    (dst / "_assets" / f".{asset.name}.tmp").write_bytes(asset.read_bytes()[:100])
+    (dst / "manifest.yaml").write_text("stale: true\n")
+    unindexed = [
+        p.name
+        for p in dst.iterdir()
+        if p.name.startswith("scene_") and int(p.name.removeprefix("scene_")) >= cut
+    ]
+    assert unindexed, "the cut should leave scene directories without index rows"
+    return dst
+
+
+@pytest.mark.parametrize("torn", ["index.jsonl", "rejections.jsonl"])
+def test_rerun_cleans_up_a_torn_batch_and_completes_it(
+    recipe: Path, reference: Path, tmp_path: Path, torn: str
+):
+    out = killed_copy(reference, tmp_path / "batch", torn)
+    run_to_completion(generate_cmd(recipe, out, workers=1))
+    assert_same_batch(out, reference)
+
+
+# ---------------------------------------------------------------- refusing another recipe
+
+
+@pytest.mark.parametrize(
+    "change",
+    [["--seed", "1"], ["--n", "5"], ["--no-render"]],
+    ids=["other_seed", "other_n", "no_render"],
+)
+def test_rerun_with_other_settings_is_refused(
+    recipe: Path,
+    reference: Path,
+    tmp_path: Path,
+    change: list[str],
+    capfd: pytest.CaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+):
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))  # undo any change main makes
+    out = tmp_path / "batch"
+    shutil.copytree(reference, out)
+    before = {**snapshot(out), "timings.json": (out / "timings.json").read_text()}
+    mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    args = generate_cmd(recipe, out, workers=1)[3:]
+    flag, *value = change
+    if value:
+        args[args.index(flag) + 1] = value[0]
+    else:
+        args.append(flag)
+    code = main(args)
+    captured = capfd.readouterr()
+    assert code == USAGE_ERROR, (code, captured.err)
+    lines = captured.err.splitlines()
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{captured.err}"
+    assert lines[0].startswith(PREFIX) and "--out" in lines[0] and str(out) in lines[0], lines[0]
+    assert captured.out == ""
+    assert {**snapshot(out), "timings.json": (out / "timings.json").read_text()} == before
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == mtimes, "the batch was touched"
