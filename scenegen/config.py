@@ -17,6 +17,7 @@ from scenegen.check.geometry import CheckSettings
 from scenegen.propose.procedural import ProceduralSettings
 from scenegen.schema.condition import Condition
 from scenegen.settle import SettleSettings
+from scenegen.tags import TagSettings
 
 
 class ConfigError(ValueError):
@@ -41,6 +42,7 @@ class PipelineConfig(BaseModel):
     proposer: ProceduralSettings = ProceduralSettings()
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
+    tags: TagSettings = TagSettings()
     render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
 
     @property

@@ -41,6 +41,7 @@ class Source(BaseModel):
     seed: int | None = None
     rejections_by_label: dict[str, int] = Field(default_factory=dict)
     catalog_sha256: str | None = None
+    predicate_version: str | None = None  # scenegen.tags.PREDICATE_VERSION of the tags in this source
     scenegen_version: str = __version__
 
     @model_validator(mode="after")
@@ -64,7 +65,13 @@ class Manifest(BaseModel):
 
 
 def batch_source(
-    batch: Path, name: str, pipeline: dict, generator: dict, seed: int, catalog_sha: str
+    batch: Path,
+    name: str,
+    pipeline: dict,
+    generator: dict,
+    seed: int,
+    catalog_sha: str,
+    predicate_version: str,
 ) -> Source:
     """A synthetic source describing a batch directory, with counts derived from its files."""
     scenes = sum(1 for d in batch.iterdir() if d.is_dir() and (d / "scene.json").is_file())
@@ -83,6 +90,7 @@ def batch_source(
         seed=seed,
         rejections_by_label=dict(sorted(labels.items())),
         catalog_sha256=catalog_sha,
+        predicate_version=predicate_version,
     )
 
 

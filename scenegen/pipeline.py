@@ -31,8 +31,9 @@ from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.store import BatchStore, atomic_write, scene_xml
+from scenegen.tags import PREDICATE_VERSION, TagContext, condition_check, measure_tags
 
-STAGES = ("propose", "check", "build", "settle", "render", "store")
+STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
 PROPOSAL_CHUNK = 8  # proposals drawn at a time (each is independent of the chunking)
 
 
@@ -82,7 +83,7 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
     out.seconds["build"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    settled = settle(model, proposal, qpos0, ctrl, config.settle)
+    settled = settle(model, proposal, qpos0, ctrl, config.settle, catalog)
     out.seconds["settle"] = time.perf_counter() - t0
     checks += settled.checks
     if not settled.passed:
@@ -90,14 +91,34 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         out.rejection = Rejection.from_check(proposal.index, failed)
         return out
 
+    t0 = time.perf_counter()
+    data = mujoco.MjData(model)
+    data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
+    mujoco.mj_forward(model, data)
+    contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
+    context = TagContext.of_scene(
+        model,
+        data,
+        catalog,
+        proposal.target,
+        proposal.objects,
+        proposal.furniture,
+        proposal.lighting,
+        proposal.cameras[0].position,
+        contacts,
+    )
+    tags = measure_tags(context, config.tags)
+    checks.append(condition_check(tags, proposal.condition))
+    out.seconds["tag"] = time.perf_counter() - t0
+    if not checks[-1].passed:
+        out.rejection = Rejection.from_check(proposal.index, checks[-1])
+        return out
+
     segmentation: dict[str, int] = {}
     if config.render:
         from scenegen.render import RENDER_SETTINGS, frames_to_files, process_renderer, segmentation_ids
 
         t0 = time.perf_counter()
-        data = mujoco.MjData(model)
-        data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
-        mujoco.mj_forward(model, data)
         segmentation = segmentation_ids(
             model, [o.name for o in proposal.objects], [f.name for f in proposal.furniture]
         )
@@ -135,7 +156,6 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
                 rotated=round(rotation_angle(quat, obj.quat), 6),
             )
         )
-    contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
     out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, bodies)
     out.record = SceneRecord(
         scene_id=f"scene_{proposal.index:06d}",
@@ -148,6 +168,8 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
         furniture=proposal.furniture,
         lighting=proposal.lighting,
         cameras=tuple(_camera_entry(cam, config.render) for cam in proposal.cameras),
+        tags=tags,
+        predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
         render=RENDER_SETTINGS if config.render else None,
         contacts=tuple(contacts),
@@ -299,6 +321,7 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
         generator={"kind": config.proposer.kind},
         seed=config.seed,
         catalog_sha=catalog.sha256,
+        predicate_version=PREDICATE_VERSION,
     )
     write_manifest(out / "manifest.yaml", Manifest(kind="batch", sources=[source]))
     proposals_done = source.counts.proposals

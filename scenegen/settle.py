@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from scenegen import world
+from scenegen.assets.catalog import Catalog
 from scenegen.schema.scene import CheckResult, Contact, SceneProposal
 
 EE_BODY = "gripper0_eef"
@@ -85,6 +86,7 @@ def settle(
     qpos0: np.ndarray,
     ctrl: np.ndarray,
     settings: SettleSettings,
+    catalog: Catalog,
 ) -> SettleOutcome:
     """Step until still; check divergence, support and displacement; then run the passive test."""
     data = mujoco.MjData(model)
@@ -137,7 +139,7 @@ def settle(
         )
         return SettleOutcome(checks, False, qpos, ctrl, stats)
 
-    surfaces = world.support_surfaces(proposal.furniture)
+    surfaces = world.support_surfaces(proposal.furniture, proposal.objects, catalog)
     placements = {o.name: o for o in proposal.objects}
     worst_drop, drop_who, worst_move, move_who, worst_rot = -math.inf, "", 0.0, "", 0.0
     for name, adr in bodies:

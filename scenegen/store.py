@@ -160,6 +160,8 @@ class BatchStore:
         if not root.exists() or not any(root.iterdir()):
             root.mkdir(parents=True, exist_ok=True)
             (root / ASSETS).mkdir(exist_ok=True)
+            for log in (INDEX, REJECTIONS):  # present from the start, empty or not
+                (root / log).touch()
             atomic_write(root / "pipeline.yaml", pipeline_yaml)
             return ResumeState()
         recipe = root / "pipeline.yaml"
@@ -219,6 +221,7 @@ class BatchStore:
                 "proposal_index": record.proposal_index,
                 "target": record.target,
                 "n_objects": len(record.objects),
+                "tags": sorted(t for t, v in record.tags.items() if v.holds),
                 "scene_json_sha256": hashlib.sha256(text.encode()).hexdigest(),
             },
         )

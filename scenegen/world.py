@@ -125,9 +125,21 @@ class Surface:
         return float(min(self.half[0] - local[0], self.half[1] - local[1]))
 
 
-def support_surfaces(furniture: Sequence[FurniturePlacement]) -> dict[str, Surface]:
-    """The table top and each furniture piece's surface, keyed by name (``table``, furniture names)."""
-    surfaces = {"table": Surface("table", TABLE_TOP_Z, (0.0, 0.0), (TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2))}
+# The floor strip beside the table (+y side) where an object may lie on the floor (``on_floor``).
+FLOOR = Surface("floor", 0.0, (0.0, TABLE_SIZE[1] / 2 + 0.18), (0.35, 0.12))
+
+
+def support_surfaces(
+    furniture: Sequence[FurniturePlacement],
+    objects: Sequence[ObjectPlacement] = (),
+    catalog: Catalog | None = None,
+) -> dict[str, Surface]:
+    """Surfaces objects can rest on, keyed by name: ``table``, ``floor``, each furniture piece, and
+    (given the catalog) the flat top of each object, under the object's name (stacking)."""
+    surfaces = {
+        "table": Surface("table", TABLE_TOP_Z, (0.0, 0.0), (TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2)),
+        "floor": FLOOR,
+    }
     for piece in furniture:
         kind = FURNITURE[piece.kind]
         surfaces[piece.name] = Surface(
@@ -137,7 +149,35 @@ def support_surfaces(furniture: Sequence[FurniturePlacement]) -> dict[str, Surfa
             kind.surface_half,
             piece.yaw,
         )
+    if catalog is not None:
+        for obj in objects:
+            surfaces[obj.name] = object_top_surface(catalog, obj)
     return surfaces
+
+
+def object_top_surface(catalog: Catalog, obj: ObjectPlacement, tolerance: float = 0.0015) -> Surface:
+    """The top of an object as a support: its highest convex-part vertices (within ``tolerance``),
+    bounded by a rectangle in the object's yaw frame. A pointed or round top gives a tiny region."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.check.geometry import quat_to_matrix
+
+    rot = quat_to_matrix(obj.quat)
+    pts = np.concatenate(convex_part_vertices(catalog.root, obj.asset)) * obj.scale @ rot.T
+    top = pts[pts[:, 2] >= pts[:, 2].max() - tolerance]
+    x_axis = rot[:, 0] if np.hypot(rot[0, 0], rot[1, 0]) > 1e-6 else rot[:, 1]
+    yaw = math.atan2(x_axis[1], x_axis[0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    local = top[:, :2] @ np.array([[c, -s], [s, c]])  # world offsets -> yaw frame
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    mid = (lo + hi) / 2
+    center = np.array([c * mid[0] - s * mid[1], s * mid[0] + c * mid[1]]) + obj.position[:2]
+    return Surface(
+        obj.name,
+        float(obj.position[2] + pts[:, 2].max()),
+        (float(center[0]), float(center[1])),
+        (float((hi - lo)[0] / 2), float((hi - lo)[1] / 2)),
+        yaw,
+    )
 
 
 def furniture_boxes(piece: FurniturePlacement) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

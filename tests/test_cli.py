@@ -115,8 +115,8 @@ BAD_RECIPES: dict[str, tuple[Mutation, Callable[[], list[str]]]] = {
     "zero_n": (_set("n", value=0), lambda: ["n: ", "greater than or equal to 1"]),
     "negative_seed": (_set("seed", value=-1), lambda: ["seed", "greater than or equal to 0"]),
     "unknown_support": (
-        _set("proposer", "support_weights", value={"table": 0.8, "floor": 0.2}),
-        lambda: ["proposer", "support_weights", "floor", "table", "shelf", "bin"],
+        _set("proposer", "support_weights", value={"table": 0.8, "ceiling": 0.2}),
+        lambda: ["proposer", "support_weights", "ceiling", "table", "floor", "stack", "shelf", "bin"],
     ),
 }
 

@@ -51,7 +51,7 @@ def run_settle(catalog, objects, settings=SETTINGS):
     )
     model = world.build_world(catalog, proposal.objects).compile()
     qpos, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
-    return model, proposal, settle(model, proposal, qpos, ctrl, settings)
+    return model, proposal, settle(model, proposal, qpos, ctrl, settings, catalog)
 
 
 @pytest.fixture(scope="module")

@@ -128,7 +128,7 @@ def test_default_sheet_is_a_grid_of_front_thumbnails_in_index_order(batch: Path,
         )
         band = t[THUMB_H:]
         assert (band < 128).any(), f"tile {i}: no label text"
-        assert (band == 255).mean() > 0.8, f"tile {i}: label band is not white"
+        assert (band == 255).mean() > 0.6, f"tile {i}: label band is not white"
     for i in range(len(ids), 8):
         assert (tile(sheet, i, views=1, columns=4) == 255).all(), f"filler tile {i} is not blank"
 

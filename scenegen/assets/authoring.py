@@ -124,16 +124,17 @@ class AssetSpec:
     friction: float  # sliding friction coefficient
     rgba: tuple[float, float, float, float]
     coacd: dict = field(default_factory=dict)  # overrides of COACD_DEFAULTS
+    flat: bool = False  # lying on either face is normal (utensils): both flat poses count as upright
 
 
 # Curved thin walls need many small parts to stay within 3 mm of the surface.
 THIN_SHELL = {"threshold": 0.02, "max_convex_hull": 32}
 
 ASSET_SPECS: tuple[AssetSpec, ...] = (
-    AssetSpec("teaspoon", "spoon", teaspoon, 7800, 0.6, (0.75, 0.75, 0.78, 1)),
-    AssetSpec("tablespoon", "spoon", tablespoon, 7800, 0.6, (0.7, 0.7, 0.74, 1)),
-    AssetSpec("fork", "fork", fork, 7800, 0.6, (0.72, 0.72, 0.76, 1)),
-    AssetSpec("knife", "knife", knife, 3000, 0.6, (0.2, 0.2, 0.22, 1)),
+    AssetSpec("teaspoon", "spoon", teaspoon, 7800, 0.6, (0.75, 0.75, 0.78, 1), flat=True),
+    AssetSpec("tablespoon", "spoon", tablespoon, 7800, 0.6, (0.7, 0.7, 0.74, 1), flat=True),
+    AssetSpec("fork", "fork", fork, 7800, 0.6, (0.72, 0.72, 0.76, 1), flat=True),
+    AssetSpec("knife", "knife", knife, 3000, 0.6, (0.2, 0.2, 0.22, 1), flat=True),
     AssetSpec("mug", "mug", mug, 2300, 0.8, (0.85, 0.3, 0.25, 1), THIN_SHELL),
     AssetSpec(
         "bowl", "bowl", bowl, 1500, 0.8, (0.9, 0.88, 0.8, 1), {"threshold": 0.02, "max_convex_hull": -1}
@@ -210,18 +211,18 @@ def hull_to_visual_distance(mesh: trimesh.Trimesh, parts: list[trimesh.Trimesh],
     return float(max(d_ab, d_ba))
 
 
-def resting_poses(mesh: trimesh.Trimesh) -> list[dict]:
+def resting_poses(mesh: trimesh.Trimesh, flat: bool = False) -> list[dict]:
     """Stable resting poses on a horizontal plane, most likely first.
 
     Each pose is the rotation (wxyz quaternion, yaw removed) that puts the object on the plane, the
     height of its centre of mass above the plane (metres), its quasi-static probability, and whether
-    it is upright (the authored +z stays up).
+    it is upright (the authored +z stays up; for ``flat`` assets, either face down is upright).
     """
     transforms, probs = trimesh.poses.compute_stable_poses(mesh, sigma=0.0, n_samples=1)
     poses = []
     for tf, p in zip(transforms, probs, strict=True):
         rot = _remove_yaw(tf[:3, :3])
-        upright = bool(rot[2, 2] > 0.99)
+        upright = bool(rot[2, 2] > 0.99 or (flat and rot[2, 2] < -0.99))
         # The upright pose is kept even when unlikely under a random drop (a bottle), since the
         # upright/toppled distinction is defined against it.
         if len(poses) == MAX_POSES or (p < MIN_POSE_PROBABILITY and not upright):
@@ -315,7 +316,7 @@ def build(out_dir: Path = ASSETS_DIR, only: set[str] | None = None) -> dict:
                 "rgba": list(spec.rgba),
                 "extents": [round(float(e), 5) for e in mesh.extents],
                 "hull_to_visual_mm": round(hausdorff * 1000, 3),
-                "resting_poses": resting_poses(mesh),
+                "resting_poses": resting_poses(mesh, spec.flat),
             }
         )
         print(

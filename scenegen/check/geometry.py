@@ -113,11 +113,13 @@ def _aabb_overlap(a: Solid, b: Solid, margin: float) -> bool:
 
 
 def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
-    """Every object's centre lies over the table (value: worst margin to the table edge, m)."""
+    """Every object's centre lies over the table, or over the floor strip beside it when the floor is
+    its support (value: worst margin to the region's edge, m)."""
     table = world.support_surfaces(())["table"]
     worst, who = math.inf, ""
     for obj in proposal.objects:
-        margin = table.margin(obj.position[:2])
+        region = world.FLOOR if obj.support == "floor" else table
+        margin = region.margin(obj.position[:2])
         if margin < worst:
             worst, who = margin, obj.name
     return _result("workspace", worst >= 0.0, "out_of_workspace", worst, 0.0, who)
@@ -128,10 +130,10 @@ def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSett
 
     value: the worst of (margin of the centre inside the region, m) and (-|bottom - surface|, m).
     """
-    surfaces = world.support_surfaces(proposal.furniture)
+    surfaces = world.support_surfaces(proposal.furniture, proposal.objects, catalog)
     worst, who = math.inf, ""
     for obj in proposal.objects:
-        surface = surfaces.get(obj.support)
+        surface = surfaces.get(obj.support) if obj.support != obj.name else None
         if surface is None:
             return _result("support", False, "unsupported", -math.inf, 0.0, f"{obj.name}: no {obj.support}")
         asset = catalog.get(obj.asset)
@@ -238,6 +240,12 @@ def check_reachability(
     [reach_min, reach_max] around the shoulder (m).
     """
     obj = next(o for o in proposal.objects if o.name == proposal.target)
+    if obj.support == "floor":
+        # A target on the floor is outside a table-top arm's envelope by construction: a recovery case
+        # for another base or robot, so it is recorded as hard, not rejected.
+        return CheckResult(
+            stage="check", check="reachability", passed=True, detail=f"{obj.name} on the floor"
+        )
     pos = np.asarray(obj.position)
     top = pos + [0, 0, catalog.get(obj.asset).resting_poses[obj.resting_pose].height * obj.scale]
     candidates = {"side": pos}

@@ -30,6 +30,8 @@ from scenegen.schema.scene import (
     SceneProposal,
 )
 
+# Assets with a flat top that others may be stacked on (``stack`` support).
+STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})
 # Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
 FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
 DEFAULT_CAMERAS = (
@@ -61,9 +63,14 @@ class ProceduralSettings(BaseModel):
     furniture: tuple[Literal["shelf", "bin"], ...] = ("shelf", "bin")
     furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
     categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
+    furniture_probability: dict[str, float] = Field(default_factory=dict)  # kind -> P(present); default 1
+    # Where objects go: table, floor (the strip beside the table), a furniture piece by name, or
+    # stack (on the flat top of an object placed before it). target_support_weights, when given,
+    # replaces support_weights for the target only.
     support_weights: dict[str, float] = Field(
         default_factory=lambda: {"table": 0.8, "shelf": 0.1, "bin": 0.1}
     )
+    target_support_weights: dict[str, float] | None = None
     edge_margin: float = Field(0.03, ge=0.0)  # min distance (m) from an object's centre to its surface's edge
     placement_attempts: int = Field(20, ge=1)
     lighting: LightingSettings = LightingSettings()
@@ -79,16 +86,23 @@ class ProceduralSettings(BaseModel):
 
     @model_validator(mode="after")
     def _supports(self):
-        valid = {"table", *self.furniture}
-        for name, w in self.support_weights.items():
-            if name not in valid:
-                raise ValueError(
-                    f"support_weights: unknown support {name!r}; valid: {', '.join(sorted(valid))}"
-                )
-            if w < 0:
-                raise ValueError(f"support_weights: weight of {name!r} must be >= 0")
-        if self.support_weights.get("table", 0) <= 0:
-            raise ValueError("support_weights: 'table' needs a positive weight")
+        valid = {"table", "floor", "stack", *self.furniture}
+        for field_name in ("support_weights", "target_support_weights"):
+            weights = getattr(self, field_name)
+            if weights is None:
+                continue
+            for name, w in weights.items():
+                if name not in valid:
+                    raise ValueError(
+                        f"{field_name}: unknown support {name!r}; valid: {', '.join(sorted(valid))}"
+                    )
+                if w < 0:
+                    raise ValueError(f"{field_name}: weight of {name!r} must be >= 0")
+            if weights.get("table", 0) <= 0:
+                raise ValueError(f"{field_name}: 'table' needs a positive weight")
+        for kind, p in self.furniture_probability.items():
+            if kind not in self.furniture or not 0 <= p <= 1:
+                raise ValueError(f"furniture_probability: {kind!r} must be one of furniture with 0 <= p <= 1")
         return self
 
     @field_validator("categories")
@@ -178,24 +192,15 @@ class ProceduralProposer:
     def _one(self, condition: Condition, index: int, seed: int) -> SceneProposal:
         s = self.settings
         rng = proposal_rng(seed, index)
-        furniture = tuple(
-            FurniturePlacement(
-                name=kind,
-                kind=kind,
-                position=(
-                    *_r(
-                        np.add(FURNITURE_HOME[kind], rng.uniform(-s.furniture_jitter, s.furniture_jitter, 2))
-                    ),
-                    0.0,
-                ),
-            )
-            for kind in s.furniture
-        )
+        furniture = []
+        for kind in s.furniture:
+            present = rng.uniform() < s.furniture_probability.get(kind, 1.0)
+            jitter = rng.uniform(-s.furniture_jitter, s.furniture_jitter, 2)
+            if present:
+                position = (*_r(np.add(FURNITURE_HOME[kind], jitter)), 0.0)
+                furniture.append(FurniturePlacement(name=kind, kind=kind, position=position))
+        furniture = tuple(furniture)
         surfaces = world.support_surfaces(furniture)
-        support_names = [n for n in sorted(s.support_weights) if n in surfaces and s.support_weights[n] > 0]
-        weights = np.array([s.support_weights[n] for n in support_names])
-        weights /= weights.sum()
-
         keep_out = [
             box
             for piece in furniture
@@ -203,20 +208,35 @@ class ProceduralProposer:
             if box[0][2] - box[2][2] < world.TABLE_TOP_Z + 1e-3
         ]
         n = int(rng.integers(s.n_objects[0], s.n_objects[1] + 1))
+        target_slot = int(rng.integers(n))
         target_kinds = self.catalog.of_category(condition.target)
         placed: list[ObjectPlacement] = []
         footprints: list[tuple[str, np.ndarray, float]] = []
         for slot in range(n):
-            pool = target_kinds if slot == 0 else self.others
+            is_target = slot == target_slot
+            pool = target_kinds if is_target else self.others
             asset = pool[int(rng.integers(len(pool)))]
             probs = np.array([p.probability for p in asset.resting_poses])
             pose = int(rng.choice(len(probs), p=probs / probs.sum()))
             radius = footprint_radius(asset, pose)
-            support = support_names[int(rng.choice(len(support_names), p=weights))]
+            weights = (s.target_support_weights if is_target else None) or s.support_weights
+            support = _draw_support(rng, weights, surfaces)
+            if support == "stack":
+                bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
+                base = bases[int(rng.integers(len(bases)))] if bases else None
+                support = base.name if base else "table"
+                if base is not None:
+                    surfaces[base.name] = world.object_top_surface(self.catalog, base)
             surface = surfaces[support]
             # On the table an object may overhang the edge (near-edge cases); on furniture its whole
-            # footprint stays inside (bin walls, shelf board).
-            margin = s.edge_margin if support == "table" else max(s.edge_margin, radius)
+            # footprint stays inside (bin walls, shelf board); on another object its centre stays on
+            # the inner half of the top.
+            if support == "table":
+                margin = np.full(2, s.edge_margin)
+            elif support in {o.name for o in placed}:
+                margin = np.asarray(surface.half) / 2
+            else:
+                margin = np.full(2, max(s.edge_margin, radius))
             for _ in range(s.placement_attempts):
                 local = rng.uniform(-1, 1, 2) * np.maximum(np.asarray(surface.half) - margin, 0.0)
                 c, sn = math.cos(surface.yaw), math.sin(surface.yaw)
@@ -250,12 +270,19 @@ class ProceduralProposer:
             index=index,
             seed=seed,
             condition=condition,
-            target=placed[0].name,
+            target=placed[target_slot].name,
             objects=tuple(placed),
             furniture=furniture,
             lighting=sample_lighting(rng, s.lighting),
             cameras=jitter_cameras(rng, s.cameras, s.camera_jitter),
         )
+
+
+def _draw_support(rng: np.random.Generator, weights: dict[str, float], surfaces: dict) -> str:
+    """A support name drawn by weight among those present in this scene (plus ``stack``)."""
+    names = [n for n in sorted(weights) if weights[n] > 0 and (n in surfaces or n == "stack")]
+    p = np.array([weights[n] for n in names])
+    return names[int(rng.choice(len(names), p=p / p.sum()))]
 
 
 def _inside(xy: np.ndarray, box: tuple[np.ndarray, np.ndarray, np.ndarray], radius: float) -> bool:

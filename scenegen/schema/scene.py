@@ -165,6 +165,15 @@ class SettledObject(ObjectPlacement):
     rotated: float = 0.0  # radians between proposed and settled orientation
 
 
+class TagValue(_Value):
+    """One rare-case predicate measured on one scene (scenegen/tags.py)."""
+
+    holds: bool
+    value: float
+    threshold: float
+    unit: str
+
+
 class SceneRecord(BaseModel):
     """scene.json: everything needed to understand and replay one stored scene.
 
@@ -185,6 +194,8 @@ class SceneRecord(BaseModel):
     furniture: tuple[FurniturePlacement, ...]
     lighting: Lighting
     cameras: tuple[dict, ...]  # Camera fields + intrinsics + extrinsics (convention named)
+    tags: dict[str, TagValue] = Field(default_factory=dict)  # measured on the settled scene
+    predicate_version: str = ""  # scenegen.tags.PREDICATE_VERSION of the predicates that measured them
     segmentation: dict[str, int] = Field(default_factory=dict)  # instance name -> id in *_seg.png
     render: dict | None = None  # render settings used (None: not rendered)
     contacts: tuple[Contact, ...]
