@@ -51,6 +51,20 @@ def _parser() -> argparse.ArgumentParser:
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    ref = sub.add_parser(
+        "reference",
+        help="build the reference dataset (stand-in for real data) as Parquet",
+        description="Procedural layouts through check, settle and tag (no rendering), one Parquet row per "
+        "accepted layout with its request, layout, lighting and every tag's measurement; every fifth "
+        "layout is held out. The bundled one: assets/reference/reference.parquet.",
+    )
+    ref.add_argument("pipeline", type=Path, nargs="?", default=Path("pipelines/reference.yaml"))
+    ref.add_argument("--n", type=int, help="accepted layouts (overrides the recipe's n)")
+    ref.add_argument("--seed", type=int, help="seed (overrides the recipe's seed)")
+    ref.add_argument("--out", type=Path, default=Path("assets/reference/reference.parquet"))
+    ref.add_argument("--workers", type=int, default=1)
+    ref.add_argument("--quiet", action="store_true")
+
     show = sub.add_parser(
         "show",
         help="write a contact sheet PNG of a batch",
@@ -114,6 +128,25 @@ def _generate(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
+    return 0
+
+
+def _reference(args: argparse.Namespace) -> int:
+    from scenegen.assets.catalog import CatalogError
+    from scenegen.config import ConfigError, load_pipeline
+
+    try:
+        config = load_pipeline(args.pipeline, {"n": args.n, "seed": args.seed, "render": False})
+    except (ConfigError, CatalogError) as exc:
+        return _fail(str(exc))
+    if args.workers < 1:
+        return _fail(f"--workers {args.workers}: must be at least 1")
+    from scenegen.reference import build_reference, read_reference, tag_rates
+
+    stats = build_reference(config, args.out, workers=args.workers, progress=not args.quiet)
+    table, _ = read_reference(args.out)
+    print(f"{stats['rows']} layouts of {stats['proposals']} proposals -> {args.out}")
+    print("tag rates: " + ", ".join(f"{t} {c} ({r:.1%})" for t, (c, r) in tag_rates(table).items()))
     return 0
 
 
@@ -181,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
         return _generate(args)
     if args.command == "show":
         return _show(args)
+    if args.command == "reference":
+        return _reference(args)
     return _fail(f"unknown command {args.command}")
 
 

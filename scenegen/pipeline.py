@@ -16,6 +16,7 @@ import os
 import time
 from collections import Counter, deque
 from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,8 +65,13 @@ def _versions() -> dict[str, str]:
     return {n: importlib.metadata.version(n) for n in names}
 
 
-def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: Catalog) -> Outcome:
-    """Check, build, settle and render one proposal; on success, the scene record, MJCF and images."""
+def process_proposal(
+    proposal: SceneProposal, config: PipelineConfig, catalog: Catalog, export: bool = True
+) -> Outcome:
+    """Check, build, settle, tag and render one proposal; on success, the scene record, MJCF and images.
+
+    ``export=False`` skips the MJCF (layout-only datasets such as the reference set do not store it).
+    """
     out = Outcome(proposal.index)
     t0 = time.perf_counter()
     checks, ok = run_checks(proposal, catalog, config.checks)
@@ -156,7 +162,8 @@ def process_proposal(proposal: SceneProposal, config: PipelineConfig, catalog: C
                 rotated=round(rotation_angle(quat, obj.quat), 6),
             )
         )
-    out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, bodies)
+    if export:
+        out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, bodies)
     out.record = SceneRecord(
         scene_id=f"scene_{proposal.index:06d}",
         proposal_index=proposal.index,
@@ -204,17 +211,17 @@ def _camera_entry(cam, rendered: bool = True) -> dict:
 
 # ------------------------------------------------------------------------------------- workers
 
-_WORKER: tuple[PipelineConfig, Catalog] | None = None
+_WORKER: tuple[PipelineConfig, Catalog, bool] | None = None
 
 
-def _init_worker(config_json: str, pooled: bool = False) -> None:
+def _init_worker(config_json: str, pooled: bool = False, export: bool = True) -> None:
     """Pool initializer: load the recipe and catalog once, and open this worker's GL context."""
     global _WORKER
     if pooled:
         # Mesa's llvmpipe rasterizes on every core by default; with one worker per core that thrashes.
         os.environ.setdefault("LP_NUM_THREADS", "1")
     config = PipelineConfig.model_validate_json(config_json)
-    _WORKER = (config, load_catalog())
+    _WORKER = (config, load_catalog(), export)
     if config.render:
         from scenegen.render import process_renderer
 
@@ -222,8 +229,8 @@ def _init_worker(config_json: str, pooled: bool = False) -> None:
 
 
 def _work(proposal: SceneProposal) -> Outcome:
-    config, catalog = _WORKER
-    return process_proposal(proposal, config, catalog)
+    config, catalog, export = _WORKER
+    return process_proposal(proposal, config, catalog, export)
 
 
 def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterator[SceneProposal]:
@@ -233,15 +240,35 @@ def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterat
         )
 
 
-def _in_order(pool, proposals: Iterator[SceneProposal], window: int) -> Iterator[Outcome]:
-    """Outcomes in proposal order, with at most ``window`` proposals in flight."""
-    pending: deque = deque()
-    for proposal in proposals:
-        pending.append(pool.apply_async(_work, (proposal,)))
-        if len(pending) >= window:
-            yield pending.popleft().get()
-    while pending:
-        yield pending.popleft().get()
+def ordered_outcomes(
+    proposals: Iterator[SceneProposal], config: PipelineConfig, workers: int, export: bool = True
+) -> Iterator[Outcome]:
+    """Outcomes of ``proposals`` in their order, computed here or in a spawn pool of ``workers``.
+
+    Closing the generator (or leaving the loop that consumes it) stops the pool.
+    """
+    if workers <= 1:
+        _init_worker(config.model_dump_json(), False, export)
+        yield from map(_work, proposals)
+        return
+    # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
+    # fails) breaks the pool with an error instead of being respawned forever.
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_init_worker,
+        initargs=(config.model_dump_json(), True, export),
+    )
+    try:
+        pending: deque = deque()
+        for proposal in proposals:
+            pending.append(pool.submit(_work, proposal))
+            if len(pending) >= 4 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass
@@ -278,14 +305,7 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
     )
 
     proposals = _timed(_proposals(proposer, config, index), seconds)
-    pool = None
-    if workers > 1:
-        spawn = multiprocessing.get_context("spawn")
-        pool = spawn.Pool(workers, _init_worker, (config.model_dump_json(), True))
-        outcomes = _in_order(pool, proposals, window=4 * workers)
-    else:
-        _init_worker(config.model_dump_json())
-        outcomes = map(_work, proposals)
+    outcomes = ordered_outcomes(proposals, config, workers)  # lazy: no pool until iterated
     try:
         for outcome in outcomes if accepted < config.n else ():
             index = outcome.proposal_index + 1
@@ -309,9 +329,7 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
             if accepted == config.n:
                 break
     finally:
-        if pool is not None:
-            pool.terminate()
-            pool.join()
+        outcomes.close()  # stops the pool now, not at garbage collection
         bar.close()
     wall = time.perf_counter() - start
     source = batch_source(

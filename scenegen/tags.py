@@ -2,7 +2,8 @@
 
 Every predicate is geometric (positions, meshes, MuJoCo ray casts), so no renderer is needed to tag a
 scene. Each returns a :class:`TagValue`: the measured value, its threshold and unit, and whether the
-tag holds. ``nominal`` holds when no rare tag does. The predicate set carries a version hash
+tag holds (decided on the value rounded to 6 decimals, as stored, so the two always agree).
+``nominal`` holds when no rare tag does. The predicate set carries a version hash
 (:data:`PREDICATE_VERSION`) over this module's source and the default thresholds; it is stamped into
 every scene, batch manifest and dataset, so data tagged by different predicates is never mixed.
 
@@ -139,9 +140,10 @@ def near_edge(ctx: TagContext, s: TagSettings) -> TagValue:
     hx, hy = world.TABLE_SIZE[0] / 2, world.TABLE_SIZE[1] / 2
     on_table = pts[:, 2].min() > world.TABLE_TOP_Z - 0.01
     margin = float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
+    margin = round(margin, 6)  # decide on the value that is stored
     return TagValue(
         holds=bool(on_table and margin <= s.near_edge_distance),
-        value=round(margin, 6),
+        value=margin,
         threshold=s.near_edge_distance,
         unit="m",
     )
@@ -161,9 +163,10 @@ def under_overhang(ctx: TagContext, s: TagSettings) -> TagValue:
                 covered += 1
                 break
     fraction = covered / len(pts)
+    fraction = round(fraction, 6)
     return TagValue(
         holds=fraction >= s.overhang_cover,
-        value=round(fraction, 6),
+        value=fraction,
         threshold=s.overhang_cover,
         unit="fraction",
     )
@@ -176,9 +179,8 @@ def toppled(ctx: TagContext, s: TagSettings) -> TagValue:
     up_now = ctx.data.body(ctx.target).xmat.reshape(3, 3)[2, :]  # third row = world z in body frame
     axes = ctx.upright_axes if len(ctx.upright_axes) else np.array([[0.0, 0.0, 1.0]])
     angle = min(math.acos(max(-1.0, min(1.0, float(np.dot(up_now, a) / np.linalg.norm(a))))) for a in axes)
-    return TagValue(
-        holds=angle > s.toppled_angle, value=round(angle, 6), threshold=round(s.toppled_angle, 6), unit="rad"
-    )
+    angle, threshold = round(angle, 6), round(s.toppled_angle, 6)
+    return TagValue(holds=angle > threshold, value=angle, threshold=threshold, unit="rad")
 
 
 def _sample_indices(n: int, k: int) -> np.ndarray:
@@ -229,9 +231,10 @@ def occluded(ctx: TagContext, s: TagSettings) -> TagValue:
         if geomid[0] >= 0 and ctx.model.geom_bodyid[geomid[0]] != target_id and dist < reach - 1e-3:
             hidden += 1
     fraction = hidden / len(pts)
+    fraction = round(fraction, 6)
     return TagValue(
         holds=fraction >= s.occluded_fraction,
-        value=round(fraction, 6),
+        value=fraction,
         threshold=s.occluded_fraction,
         unit="fraction",
     )
@@ -263,7 +266,8 @@ def stacked(ctx: TagContext, s: TagSettings) -> TagValue:
 def low_light(ctx: TagContext, s: TagSettings) -> TagValue:
     """Light reaching the top of the target: mean ambient + sum over lights of colour x intensity x
     spot falloff x cos(incidence on an upward surface), each light only if a shadow ray from the
-    target to it is unobstructed."""
+    target to it is unobstructed (for lights that cast shadows; the others, like the renderer, pass
+    through)."""
     m, d = ctx.model, ctx.data
     pts = _hull_points(ctx)
     point = np.array([pts[:, 0].mean(), pts[:, 1].mean(), pts[:, 2].max() + 1e-3])
@@ -282,14 +286,15 @@ def low_light(ctx: TagContext, s: TagSettings) -> TagValue:
         if cos_spot < math.cos(math.radians(m.light_cutoff[lid])):
             continue
         hit = mujoco.mj_ray(m, d, point, direction, geomgroup, 1, target_id, geomid)
-        if 0 <= hit < distance:
-            continue  # in shadow
+        if light.cast_shadow and 0 <= hit < distance:
+            continue  # in shadow (a light without shadows is not blocked, as in the render)
         falloff = cos_spot ** m.light_exponent[lid]
         incidence = max(0.0, float(direction[2]))
         irradiance += float(np.mean(light.colour)) * light.intensity * falloff * incidence
+    irradiance = round(irradiance, 6)
     return TagValue(
         holds=irradiance < s.low_light_irradiance,
-        value=round(irradiance, 6),
+        value=irradiance,
         threshold=s.low_light_irradiance,
         unit="irradiance",
     )
@@ -299,7 +304,8 @@ def low_light(ctx: TagContext, s: TagSettings) -> TagValue:
 def on_floor(ctx: TagContext, s: TagSettings) -> TagValue:
     """How far (m) the target's centre is below the table top; holds for a target on the floor."""
     drop = world.TABLE_TOP_Z - float(ctx.data.body(ctx.target).xpos[2])
-    return TagValue(holds=drop >= s.on_floor_drop, value=round(drop, 6), threshold=s.on_floor_drop, unit="m")
+    drop = round(drop, 6)
+    return TagValue(holds=drop >= s.on_floor_drop, value=drop, threshold=s.on_floor_drop, unit="m")
 
 
 def measure_tags(ctx: TagContext, settings: TagSettings | None = None) -> dict[str, TagValue]:

@@ -219,21 +219,26 @@ def resting_poses(mesh: trimesh.Trimesh, flat: bool = False) -> list[dict]:
     it is upright (the authored +z stays up; for ``flat`` assets, either face down is upright).
     """
     transforms, probs = trimesh.poses.compute_stable_poses(mesh, sigma=0.0, n_samples=1)
-    poses = []
+    candidates = []
     for tf, p in zip(transforms, probs, strict=True):
         rot = _remove_yaw(tf[:3, :3])
         upright = bool(rot[2, 2] > 0.99 or (flat and rot[2, 2] < -0.99))
-        # The upright pose is kept even when unlikely under a random drop (a bottle), since the
-        # upright/toppled distinction is defined against it.
-        if len(poses) == MAX_POSES or (p < MIN_POSE_PROBABILITY and not upright):
-            continue
+        candidates.append((rot, float(p), upright))
+    # The most likely poses, and the upright ones even when unlikely under a random drop (a bottle,
+    # a cereal box on its end), since the upright/toppled distinction is defined against them.
+    likely = [c for c in candidates if c[1] >= MIN_POSE_PROBABILITY][:MAX_POSES]
+    upright = [c for c in candidates if c[2] and not any(c is k for k in likely)]
+    kept = (upright + likely)[:MAX_POSES] if upright else likely
+    kept.sort(key=lambda c: -c[1])
+    poses = []
+    for rot, p, is_upright in kept:
         height = float(-(mesh.vertices @ rot.T)[:, 2].min())
         poses.append(
             {
                 "quat": [round(float(q), 7) for q in _quat_wxyz(rot)],
                 "height": round(height, 6),
-                "probability": round(float(p), 4),
-                "upright": upright,
+                "probability": round(p, 4),
+                "upright": is_upright,
             }
         )
     return poses

@@ -71,6 +71,9 @@ class ProceduralSettings(BaseModel):
         default_factory=lambda: {"table": 0.8, "shelf": 0.1, "bin": 0.1}
     )
     target_support_weights: dict[str, float] | None = None
+    # Chance that an object stands on an upright resting pose of its asset (objects on real tables
+    # mostly stand upright); None draws poses by their quasi-static drop probabilities instead.
+    upright_probability: float | None = Field(None, ge=0.0, le=1.0)
     edge_margin: float = Field(0.03, ge=0.0)  # min distance (m) from an object's centre to its surface's edge
     placement_attempts: int = Field(20, ge=1)
     lighting: LightingSettings = LightingSettings()
@@ -216,8 +219,7 @@ class ProceduralProposer:
             is_target = slot == target_slot
             pool = target_kinds if is_target else self.others
             asset = pool[int(rng.integers(len(pool)))]
-            probs = np.array([p.probability for p in asset.resting_poses])
-            pose = int(rng.choice(len(probs), p=probs / probs.sum()))
+            pose = _draw_pose(rng, asset, s.upright_probability)
             radius = footprint_radius(asset, pose)
             weights = (s.target_support_weights if is_target else None) or s.support_weights
             support = _draw_support(rng, weights, surfaces)
@@ -276,6 +278,17 @@ class ProceduralProposer:
             lighting=sample_lighting(rng, s.lighting),
             cameras=jitter_cameras(rng, s.cameras, s.camera_jitter),
         )
+
+
+def _draw_pose(rng: np.random.Generator, asset: Asset, upright_probability: float | None) -> int:
+    """A resting pose index: by drop probability, or upright with ``upright_probability``."""
+    probs = np.array([p.probability for p in asset.resting_poses])
+    if upright_probability is not None:
+        upright = np.array([p.upright for p in asset.resting_poses])
+        if upright.any() and (~upright).any():
+            upright_draw = rng.uniform() < upright_probability
+            probs = np.where(upright == upright_draw, probs, 0.0)
+    return int(rng.choice(len(probs), p=probs / probs.sum()))
 
 
 def _draw_support(rng: np.random.Generator, weights: dict[str, float], surfaces: dict) -> str:
