@@ -442,9 +442,11 @@ def test_near_edge_threshold_is_inclusive(scenes):
     pts = collision_vertices(scene, "box")
     margin = float(min((HX - np.abs(pts[:, 0])).min(), (HY - np.abs(pts[:, 1])).min()))
     assert margin == pytest.approx(0.03, abs=1e-6)  # 3 cm, up to the float32 mesh vertices
+    # Tags compare the value as stored (rounded to 6 decimals), so thresholds step by 1e-6.
+    margin = round(margin, 6)
     at = scene.tag("near_edge", near_edge_distance=margin)
-    assert at.holds and at.value == round(margin, 6)
-    assert not scene.tag("near_edge", near_edge_distance=below(margin)).holds
+    assert at.holds and at.value == margin
+    assert not scene.tag("near_edge", near_edge_distance=margin - 1e-6).holds
     # The 2 cm box flips between thresholds 2 cm +- 1 um.
     assert scenes["box_2cm_from_edge"].tag("near_edge", near_edge_distance=0.020001).holds
     assert not scenes["box_2cm_from_edge"].tag("near_edge", near_edge_distance=0.019999).holds
@@ -559,9 +561,9 @@ def test_toppled_threshold_is_exclusive(scenes):
     scene = scenes["mug_on_its_side"]
     # The mug's one upright pose has its authored +z up, so the angle is that of the body z axis.
     up = scene.data.body("mug").xmat.reshape(3, 3)[2, 2]
-    angle = math.acos(max(-1.0, min(1.0, float(up))))
+    angle = round(math.acos(max(-1.0, min(1.0, float(up)))), 6)  # compared as stored
     assert not scene.tag("toppled", toppled_angle=angle).holds
-    assert scene.tag("toppled", toppled_angle=below(angle)).holds
+    assert scene.tag("toppled", toppled_angle=angle - 1e-6).holds
 
 
 @pytest.mark.parametrize("name", ["teaspoon_bowl_down", "teaspoon_bowl_up"])
@@ -604,9 +606,9 @@ def test_occluded_threshold_is_inclusive(scenes):
     n = DEFAULTS.occlusion_points
     hidden = round(value.value * n)
     assert 0 < hidden < n and value.value == pytest.approx(hidden / n, abs=1e-6)
-    fraction = hidden / n
+    fraction = round(hidden / n, 6)  # compared as stored
     assert scene.tag("occluded", occluded_fraction=fraction).holds
-    assert not scene.tag("occluded", occluded_fraction=above(fraction)).holds
+    assert not scene.tag("occluded", occluded_fraction=fraction + 1e-6).holds
 
 
 # ---------------------------------------------------------------- clutter
@@ -662,9 +664,9 @@ def test_light_aimed_away_adds_nothing(scenes):
 
 def test_low_light_threshold_is_exclusive(scenes):
     scene = scenes["box_dim"]
-    irradiance = float(np.mean(DIM.ambient))
+    irradiance = round(float(np.mean(DIM.ambient)), 6)  # compared as stored
     assert not scene.tag("low_light", low_light_irradiance=irradiance).holds
-    assert scene.tag("low_light", low_light_irradiance=above(irradiance)).holds
+    assert scene.tag("low_light", low_light_irradiance=irradiance + 1e-6).holds
 
 
 def test_shelf_board_shadows_the_only_light(scenes):

@@ -35,6 +35,7 @@ STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_c
 # Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
 FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
 DEFAULT_CAMERAS = (
+    # The main camera (first): tags such as `occluded` are measured from it.
     Camera(name="front", position=(1.25, 0.0, 1.45), lookat=(0.0, 0.0, 0.85)),
     Camera(name="side", position=(0.15, -1.25, 1.35), lookat=(0.0, 0.0, 0.85)),
 )
@@ -74,6 +75,10 @@ class ProceduralSettings(BaseModel):
     # Chance that an object stands on an upright resting pose of its asset (objects on real tables
     # mostly stand upright); None draws poses by their quasi-static drop probabilities instead.
     upright_probability: float | None = Field(None, ge=0.0, le=1.0)
+    # Chance that the objects on the table are gathered around one point (a cluttered spot, normal
+    # N(point, cluster_spread) per axis) instead of spread uniformly.
+    cluster_probability: float = Field(0.0, ge=0.0, le=1.0)
+    cluster_spread: float = Field(0.07, gt=0.0)
     edge_margin: float = Field(0.03, ge=0.0)  # min distance (m) from an object's centre to its surface's edge
     placement_attempts: int = Field(20, ge=1)
     lighting: LightingSettings = LightingSettings()
@@ -212,6 +217,8 @@ class ProceduralProposer:
         ]
         n = int(rng.integers(s.n_objects[0], s.n_objects[1] + 1))
         target_slot = int(rng.integers(n))
+        table = surfaces["table"]
+        cluster = rng.uniform(-0.6, 0.6, 2) * table.half if rng.uniform() < s.cluster_probability else None
         target_kinds = self.catalog.of_category(condition.target)
         placed: list[ObjectPlacement] = []
         footprints: list[tuple[str, np.ndarray, float]] = []
@@ -240,7 +247,11 @@ class ProceduralProposer:
             else:
                 margin = np.full(2, max(s.edge_margin, radius))
             for _ in range(s.placement_attempts):
-                local = rng.uniform(-1, 1, 2) * np.maximum(np.asarray(surface.half) - margin, 0.0)
+                if support == "table" and cluster is not None:
+                    limit = np.maximum(np.asarray(surface.half) - margin, 0.0)
+                    local = np.clip(rng.normal(cluster, s.cluster_spread), -limit, limit)
+                else:
+                    local = rng.uniform(-1, 1, 2) * np.maximum(np.asarray(surface.half) - margin, 0.0)
                 c, sn = math.cos(surface.yaw), math.sin(surface.yaw)
                 xy = np.asarray(surface.center) + [
                     c * local[0] - sn * local[1],
