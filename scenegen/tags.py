@@ -48,7 +48,7 @@ class TagSettings(BaseModel):
     toppled_angle: float = math.radians(45)  # tilt of the target's authored up axis from vertical
     occluded_fraction: float = 0.5  # fraction of target sample points hidden from the main camera
     occlusion_points: int = 48
-    clutter_radius: float = 0.15  # other objects with centres within this of the target (xy)
+    clutter_radius: float = 0.2  # other objects with centres within this of the target (xy)
     clutter_count: int = 3
     low_light_irradiance: float = 0.25  # ambient + direct light reaching the target (unitless, 0..)
     on_floor_drop: float = 0.3  # target centre at least this far below the table top
