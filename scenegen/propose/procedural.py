@@ -65,9 +65,9 @@ class ProceduralSettings(BaseModel):
     furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
     categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
     furniture_probability: dict[str, float] = Field(default_factory=dict)  # kind -> P(present); default 1
-    # Where objects go: table, floor (the strip beside the table), a furniture piece by name, or
-    # stack (on the flat top of an object placed before it). target_support_weights, when given,
-    # replaces support_weights for the target only.
+    # Where objects go: table, floor (the strip beside the table), a furniture piece by name (its
+    # top or inside), under_shelf (on the table beneath the shelf board), or stack (on the flat top
+    # of an object placed before it). target_support_weights replaces support_weights for the target.
     support_weights: dict[str, float] = Field(
         default_factory=lambda: {"table": 0.8, "shelf": 0.1, "bin": 0.1}
     )
@@ -94,7 +94,13 @@ class ProceduralSettings(BaseModel):
 
     @model_validator(mode="after")
     def _supports(self):
-        valid = {"table", "floor", "stack", *self.furniture}
+        valid = {
+            "table",
+            "floor",
+            "stack",
+            *self.furniture,
+            *(["under_shelf"] if "shelf" in self.furniture else []),
+        }
         for field_name in ("support_weights", "target_support_weights"):
             weights = getattr(self, field_name)
             if weights is None:
@@ -236,7 +242,14 @@ class ProceduralProposer:
                 support = base.name if base else "table"
                 if base is not None:
                     surfaces[base.name] = world.object_top_surface(self.catalog, base)
-            surface = surfaces[support]
+            under_shelf = support == "under_shelf"
+            if under_shelf:
+                # On the table, within the shelf's footprint: the table region under its board.
+                shelf = surfaces["shelf"]
+                surface = world.Surface("table", world.TABLE_TOP_Z, shelf.center, shelf.half, shelf.yaw)
+                support = "table"
+            else:
+                surface = surfaces[support]
             # On the table an object may overhang the edge (near-edge cases); on furniture its whole
             # footprint stays inside (bin walls, shelf board); on another object its centre stays on
             # the inner half of the top.
@@ -247,7 +260,7 @@ class ProceduralProposer:
             else:
                 margin = np.full(2, max(s.edge_margin, radius))
             for _ in range(s.placement_attempts):
-                if support == "table" and cluster is not None:
+                if support == "table" and cluster is not None and not under_shelf:
                     limit = np.maximum(np.asarray(surface.half) - margin, 0.0)
                     local = np.clip(rng.normal(cluster, s.cluster_spread), -limit, limit)
                 else:
@@ -303,8 +316,10 @@ def _draw_pose(rng: np.random.Generator, asset: Asset, upright_probability: floa
 
 
 def _draw_support(rng: np.random.Generator, weights: dict[str, float], surfaces: dict) -> str:
-    """A support name drawn by weight among those present in this scene (plus ``stack``)."""
-    names = [n for n in sorted(weights) if weights[n] > 0 and (n in surfaces or n == "stack")]
+    """A support name drawn by weight among those present in this scene (plus ``stack`` and, with a
+    shelf, ``under_shelf``)."""
+    present = {*surfaces, "stack", *(["under_shelf"] if "shelf" in surfaces else [])}
+    names = [n for n in sorted(weights) if weights[n] > 0 and n in present]
     p = np.array([weights[n] for n in names])
     return names[int(rng.choice(len(names), p=p / p.sum()))]
 
