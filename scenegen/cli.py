@@ -65,6 +65,25 @@ def _parser() -> argparse.ArgumentParser:
     ref.add_argument("--workers", type=int, default=1)
     ref.add_argument("--quiet", action="store_true")
 
+    from scenegen import coverage  # numpy only: cheap to import for --help
+
+    cov = sub.add_parser(
+        "coverage",
+        help="(task x tag) histogram of a dataset, batch or manifest; marks sparse cells",
+        description=coverage.__doc__.splitlines()[0],
+    )
+    coverage.add_arguments(cov)
+    # The importer needs MuJoCo, which must not load before MUJOCO_GL is checked: its two arguments
+    # are declared here.
+    imp = sub.add_parser(
+        "import-real",
+        help="import real scenes from the documented JSON format (docs/real_data.md); tags recomputed",
+        description="Import measured real scenes (docs/real_data.md) into a Parquet table, tags "
+        "recomputed at the measured poses.",
+    )
+    imp.add_argument("file", type=Path, help="JSON file of measured scenes (format: docs/real_data.md)")
+    imp.add_argument("--out", type=Path, required=True, help="Parquet file to write (atomically)")
+
     show = sub.add_parser(
         "show",
         help="write a contact sheet PNG of a batch",
@@ -216,6 +235,14 @@ def main(argv: list[str] | None = None) -> int:
         return _show(args)
     if args.command == "reference":
         return _reference(args)
+    if args.command == "coverage":
+        from scenegen import coverage
+
+        return coverage.run(args)
+    if args.command == "import-real":
+        from scenegen import importer
+
+        return importer.run(args)
     return _fail(f"unknown command {args.command}")
 
 

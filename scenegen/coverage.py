@@ -97,15 +97,14 @@ class CoverageTable:
         widths = [max(len(r[i]) for r in [head, *rows]) + (1 if i >= 2 else 0) for i in range(len(head))]
         lines = [
             f"coverage of {self.source}: {self.total} scenes; * sparse: fewer than {self.sparse} scenes "
-            f"or under {self.min_share:.0%} of all",
-            "  ".join(h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(head, widths))),
+            f"or under {self.min_share:.0%} of all"
         ]
-        for row in rows:
+        for row in [head, *rows]:
             cells = []
             for i, (cell, w) in enumerate(zip(row, widths, strict=True)):
                 if i == 0:
                     cells.append(cell.ljust(w))
-                elif i >= 2 and not cell.endswith("*"):
+                elif i >= 2 and row is not head and not cell.endswith("*"):
                     cells.append((cell + " ").rjust(w))  # counts line up whether starred or not
                 else:
                     cells.append(cell.rjust(w))
@@ -120,7 +119,7 @@ class CoverageTable:
         """Write a PNG bar chart: a group of bars per tag, one colour per task, counts on the bars.
 
         Sparse counts are red and starred, and a dashed line marks the threshold. ``log``: count axis
-        log(1 + n); None (default) picks it when the tallest bar dwarfs the threshold (see ``LOG_SCALE_RATIO``).
+        log(1 + n); None (default) picks it when the tallest bar dwarfs the threshold (``LOG_SCALE_RATIO``).
         """
         from scenegen.store import atomic_write
 
@@ -226,17 +225,21 @@ def _manifest(path: Path) -> CoverageTable:
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        raise CoverageError(f"{path}: not a data manifest: {where}: {err['msg']} (scenegen/manifest.py)") from None
+        raise CoverageError(
+            f"{path}: not a data manifest: {where}: {err['msg']} (scenegen/manifest.py)"
+        ) from None
     except TypeError:
-        raise CoverageError(f"{path}: not a data manifest (a mapping with schema_version, kind, sources)") from None
+        raise CoverageError(
+            f"{path}: not a data manifest (a mapping with schema_version, kind, sources)"
+        ) from None
     folder = path.parent.resolve()
     located = []
     for source in manifest.sources:
         location = (folder / source.location).resolve()
         if not location.is_relative_to(folder):
             raise CoverageError(
-                f"{path}: source {source.name!r}: location {source.location!r} resolves to {location}, outside "
-                f"the manifest's folder {folder}; a manifest may only name data inside its folder"
+                f"{path}: source {source.name!r}: location {source.location!r} resolves to {location}, "
+                f"outside the manifest's folder {folder}; a manifest may only name data inside its folder"
             )
         located.append((source, location))
     table = _empty(str(path))
@@ -282,7 +285,8 @@ def coverage_table(
         table = _parquet(path)
     else:
         raise CoverageError(
-            f"{path}: not a Parquet table, batch directory or manifest YAML (.yaml); see `scenegen coverage -h`"
+            f"{path}: not a Parquet table, batch directory or manifest YAML (.yaml); "
+            "see `scenegen coverage -h`"
         )
     return CoverageTable(
         str(path), table.counts, table.scenes, table.total, sparse, min_share, table.skipped, table.tags
@@ -393,7 +397,14 @@ def _draw_chart(table: CoverageTable, log: bool | None = None) -> np.ndarray:
             scale = 0.42
             while scale > 0.3 and cv2.getTextSize(label, _FONT, scale, 1)[0][0] > bar_w - 2:
                 scale -= 0.02
-            _text(image, label, (bx + bar_w // 2, y - 6), scale, _SPARSE_INK if sparse else _INK, anchor="centre")
+            _text(
+                image,
+                label,
+                (bx + bar_w // 2, y - 6),
+                scale,
+                _SPARSE_INK if sparse else _INK,
+                anchor="centre",
+            )
         centre = gx + len(tasks) * bar_w // 2
         _text(image, tag, (centre, top + plot_h + 24), 0.5, anchor="centre")
 
@@ -440,7 +451,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "source", type=Path, help="reference/real Parquet table, batch directory, or manifest YAML"
     )
-    parser.add_argument("--out", type=Path, help=f"PNG bar chart to write (default: {CHART_NAME} next to SOURCE)")
+    parser.add_argument(
+        "--out", type=Path, help=f"PNG bar chart to write (default: {CHART_NAME} next to SOURCE)"
+    )
     parser.add_argument(
         "--sparse",
         type=int,
@@ -461,7 +474,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"scenegen: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        print(f"scenegen: error: {args.out or default_chart_path(args.source)}: {_first_line(exc)}", file=sys.stderr)
+        print(
+            f"scenegen: error: {args.out or default_chart_path(args.source)}: {_first_line(exc)}",
+            file=sys.stderr,
+        )
         return 2
     print(table.format_table())
     print(f"chart: {out}")

@@ -26,8 +26,15 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, ValidationError, field_validator
-from pydantic import model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from scenegen import __version__, world
 from scenegen.assets.catalog import Catalog, load_catalog
@@ -165,7 +172,9 @@ class RealLighting(_Input):
     ambient: Vec3 = (0.1, 0.1, 0.1)
 
     def lighting(self) -> Lighting:
-        return Lighting(lights=tuple(Light(**light.model_dump()) for light in self.lights), ambient=self.ambient)
+        return Lighting(
+            lights=tuple(Light(**light.model_dump()) for light in self.lights), ambient=self.ambient
+        )
 
 
 class RealRecord(_Input):
@@ -198,7 +207,9 @@ class RealRecord(_Input):
             isinstance(q, int | float) and not isinstance(q, bool) and math.isfinite(q) for q in pose
         )
         if not numbers or len(pose) != 7:
-            raise ValueError(f"give a pose name ({', '.join(ROBOT_POSES)}) or a list of 7 finite joint angles")
+            raise ValueError(
+                f"give a pose name ({', '.join(ROBOT_POSES)}) or a list of 7 finite joint angles"
+            )
         try:
             Condition(robot_pose=tuple(pose))  # the Panda's joint limits
         except ValidationError as exc:
@@ -212,7 +223,9 @@ class RealRecord(_Input):
             if name in names[:i]:
                 raise _FieldError(("objects", i, "name"), f"duplicate object name {name!r}")
         if self.target not in names:
-            raise _FieldError(("target",), f"{self.target!r} is not an object of this record; objects: {names}")
+            raise _FieldError(
+                ("target",), f"{self.target!r} is not an object of this record; objects: {names}"
+            )
         for i, name in enumerate(self.furniture_names()):
             if name in names or name in self.furniture_names()[:i]:
                 raise _FieldError(("furniture", i, "name"), f"name {name!r} is taken; give a unique name")
@@ -288,7 +301,8 @@ def read_records(path: Path) -> list[RealRecord]:
         label = _record_label(i, item)
         if not isinstance(item, dict):
             raise ImportFormatError(
-                f"{path}: {label}: a record must be a JSON object (docs/real_data.md), got {type(item).__name__}"
+                f"{path}: {label}: a record must be a JSON object (docs/real_data.md), "
+                f"got {type(item).__name__}"
             )
         try:
             record = RealRecord.model_validate(item)
@@ -327,7 +341,9 @@ def _support(
     return best
 
 
-def _placements(record: RealRecord, catalog: Catalog) -> tuple[list[ObjectPlacement], list[FurniturePlacement]]:
+def _placements(
+    record: RealRecord, catalog: Catalog
+) -> tuple[list[ObjectPlacement], list[FurniturePlacement]]:
     """Objects with their support and nearest resting pose, and furniture, as the pipeline names them."""
     from scenegen.assets.catalog import convex_part_vertices
     from scenegen.check.geometry import quat_to_matrix
@@ -447,12 +463,15 @@ def import_real(path: str | Path, out_parquet: str | Path) -> dict:
     spec = world.robot_spec()  # held: its bodies are views into it
     reserved = {body.name for body in spec.bodies}
     for i, record in enumerate(records):
-        for field, names in (("objects", [o.name for o in record.objects]), ("furniture", record.furniture_names())):
+        for field, names in (
+            ("objects", [o.name for o in record.objects]),
+            ("furniture", record.furniture_names()),
+        ):
             for j, name in enumerate(names):
                 if name in reserved:
                     raise ImportFormatError(
-                        f"{path}: {_record_label(i, {'id': record.id})}: {field}[{j}].name: {name!r} is a body "
-                        "of the simulated table or robot; rename it"
+                        f"{path}: {_record_label(i, {'id': record.id})}: {field}[{j}].name: {name!r} is a "
+                        "body of the simulated table or robot; rename it"
                     )
     rows, unsupported = [], []
     for i, record in enumerate(records):
@@ -516,7 +535,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``scenegen import-real FILE --out OUT.parquet`` (``argv`` without the command)."""
     parser = argparse.ArgumentParser(
         prog="scenegen import-real",
-        description="Import measured real scenes (docs/real_data.md) into a Parquet table with recomputed tags.",
+        description="Import measured real scenes (docs/real_data.md) into a Parquet table, tags "
+        "recomputed at the measured poses.",
     )
     add_arguments(parser)
     return run(parser.parse_args(argv))
