@@ -416,7 +416,9 @@ def power(
     ``SeedSequence([seed, t])``.
     """
     if len(rows) < 2 * folds:
-        raise ValueError(f"power needs at least {2 * folds} rows (two halves of {folds} folds); got {len(rows)}")
+        raise ValueError(
+            f"power needs at least {2 * folds} rows (two halves of {folds} folds); got {len(rows)}"
+        )
     categories = _catalog_categories()
     half = len(rows) // 2
     detected = 0
