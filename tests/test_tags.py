@@ -280,10 +280,12 @@ def can_half_behind_cereal_box(c):
     return Recipe([place(c, "can", "soup_can", 0.0, 0.0, pose=1), _wall(c, 0.1)])
 
 
-# Clutter around a box at the origin: centres at 0.10, 0.12 and exactly 0.15 m (the radius), one at
-# 0.1513 m (just outside) and one far away.
-CLUTTER_INSIDE = [(0.10, 0.0), (0.0, 0.12), (0.0, -0.15)]
-CLUTTER_OUTSIDE = [(0.107, 0.107), (0.3, -0.3)]
+# Clutter around a box at the origin, relative to the default radius R: centres at R - 5 cm, R - 3 cm
+# and exactly R, one 1.3 mm outside and one far away.
+R = DEFAULTS.clutter_radius
+JUST_OUTSIDE = (R + 0.0013) / math.sqrt(2)
+CLUTTER_INSIDE = [(R - 0.05, 0.0), (0.0, R - 0.03), (0.0, -R)]
+CLUTTER_OUTSIDE = [(JUST_OUTSIDE, JUST_OUTSIDE), (0.3, -0.35)]
 
 
 @recipe
@@ -633,7 +635,7 @@ def test_clutter_thresholds(scenes):
     tighter = scene.tag("clutter", clutter_radius=below(DEFAULTS.clutter_radius))
     assert tighter.value == 2.0 and not tighter.holds
     # Growing it to the just-outside can brings that one in.
-    wider = scene.tag("clutter", clutter_radius=math.hypot(0.107, 0.107), clutter_count=4)
+    wider = scene.tag("clutter", clutter_radius=R + 0.002, clutter_count=4)
     assert wider.value == 4.0 and wider.holds
 
 
