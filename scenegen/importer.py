@@ -38,7 +38,7 @@ from pydantic import (
 
 from scenegen import __version__, world
 from scenegen.assets.catalog import Catalog, load_catalog
-from scenegen.schema.condition import ROBOT_POSES, TAGS, TASKS, Condition
+from scenegen.schema.condition import ROBOT_POSES, TAGS, Condition, known_pose_name, known_task
 from scenegen.schema.scene import (
     FurniturePlacement,
     Light,
@@ -192,17 +192,13 @@ class RealRecord(_Input):
     @field_validator("task")
     @classmethod
     def _known_task(cls, task: str) -> str:
-        if task not in TASKS:
-            raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASKS)}")
-        return task
+        return known_task(task)
 
     @field_validator("robot_pose", mode="before")
     @classmethod
     def _valid_pose(cls, pose):
         if isinstance(pose, str):
-            if pose not in ROBOT_POSES:
-                raise ValueError(f"unknown robot pose {pose!r}; valid names: {', '.join(ROBOT_POSES)}")
-            return pose
+            return known_pose_name(pose)
         numbers = isinstance(pose, list) and all(
             isinstance(q, int | float) and not isinstance(q, bool) and math.isfinite(q) for q in pose
         )

@@ -16,6 +16,7 @@ import hashlib
 import inspect
 import json
 import math
+import operator
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -111,6 +112,12 @@ def predicate(name: str):
     return decorate
 
 
+def _measured(value: float, threshold: float, unit: str, holds: Callable[[float, float], bool]) -> TagValue:
+    """A predicate's result, decided on the value rounded to 6 decimals as it is stored."""
+    value = round(float(value), 6)
+    return TagValue(holds=bool(holds(value, threshold)), value=value, threshold=threshold, unit=unit)
+
+
 def _geom_points(ctx: TagContext, body: str, group: int) -> np.ndarray:
     """World-frame vertices (N, 3) of a body's mesh geoms in ``group``."""
     m, d = ctx.model, ctx.data
@@ -140,13 +147,7 @@ def near_edge(ctx: TagContext, s: TagSettings) -> TagValue:
     hx, hy = world.TABLE_SIZE[0] / 2, world.TABLE_SIZE[1] / 2
     on_table = pts[:, 2].min() > world.TABLE_TOP_Z - 0.01
     margin = float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
-    margin = round(margin, 6)  # decide on the value that is stored
-    return TagValue(
-        holds=bool(on_table and margin <= s.near_edge_distance),
-        value=margin,
-        threshold=s.near_edge_distance,
-        unit="m",
-    )
+    return _measured(margin, s.near_edge_distance, "m", lambda v, t: on_table and v <= t)
 
 
 @predicate("under_overhang")
@@ -162,14 +163,7 @@ def under_overhang(ctx: TagContext, s: TagSettings) -> TagValue:
             if np.all(np.abs(local[:2]) <= half[:2]) and center[2] - half[2] > top:
                 covered += 1
                 break
-    fraction = covered / len(pts)
-    fraction = round(fraction, 6)
-    return TagValue(
-        holds=fraction >= s.overhang_cover,
-        value=fraction,
-        threshold=s.overhang_cover,
-        unit="fraction",
-    )
+    return _measured(covered / len(pts), s.overhang_cover, "fraction", operator.ge)
 
 
 @predicate("toppled")
@@ -179,8 +173,7 @@ def toppled(ctx: TagContext, s: TagSettings) -> TagValue:
     up_now = ctx.data.body(ctx.target).xmat.reshape(3, 3)[2, :]  # third row = world z in body frame
     axes = ctx.upright_axes if len(ctx.upright_axes) else np.array([[0.0, 0.0, 1.0]])
     angle = min(math.acos(max(-1.0, min(1.0, float(np.dot(up_now, a) / np.linalg.norm(a))))) for a in axes)
-    angle, threshold = round(angle, 6), round(s.toppled_angle, 6)
-    return TagValue(holds=angle > threshold, value=angle, threshold=threshold, unit="rad")
+    return _measured(angle, round(s.toppled_angle, 6), "rad", operator.gt)
 
 
 def _sample_indices(n: int, k: int) -> np.ndarray:
@@ -230,14 +223,7 @@ def occluded(ctx: TagContext, s: TagSettings) -> TagValue:
         dist = mujoco.mj_ray(ctx.model, ctx.data, cam, vec / reach, geomgroup, 1, -1, geomid)
         if geomid[0] >= 0 and ctx.model.geom_bodyid[geomid[0]] != target_id and dist < reach - 1e-3:
             hidden += 1
-    fraction = hidden / len(pts)
-    fraction = round(fraction, 6)
-    return TagValue(
-        holds=fraction >= s.occluded_fraction,
-        value=fraction,
-        threshold=s.occluded_fraction,
-        unit="fraction",
-    )
+    return _measured(hidden / len(pts), s.occluded_fraction, "fraction", operator.ge)
 
 
 @predicate("clutter")
@@ -249,9 +235,7 @@ def clutter(ctx: TagContext, s: TagSettings) -> TagValue:
         for name in ctx.objects
         if name != ctx.target and np.linalg.norm(ctx.data.body(name).xpos[:2] - t) <= s.clutter_radius
     )
-    return TagValue(
-        holds=count >= s.clutter_count, value=float(count), threshold=float(s.clutter_count), unit="objects"
-    )
+    return _measured(count, float(s.clutter_count), "objects", operator.ge)
 
 
 @predicate("stacked")
@@ -259,7 +243,7 @@ def stacked(ctx: TagContext, s: TagSettings) -> TagValue:
     """Number of other objects the target rests on (settled contacts)."""
     names = set(ctx.objects)
     count = sum(1 for c in ctx.contacts if c.a == ctx.target and c.kind == "rests_on" and c.b in names)
-    return TagValue(holds=count >= 1, value=float(count), threshold=1.0, unit="objects")
+    return _measured(count, 1.0, "objects", operator.ge)
 
 
 @predicate("low_light")
@@ -291,21 +275,14 @@ def low_light(ctx: TagContext, s: TagSettings) -> TagValue:
         falloff = cos_spot ** m.light_exponent[lid]
         incidence = max(0.0, float(direction[2]))
         irradiance += float(np.mean(light.colour)) * light.intensity * falloff * incidence
-    irradiance = round(irradiance, 6)
-    return TagValue(
-        holds=irradiance < s.low_light_irradiance,
-        value=irradiance,
-        threshold=s.low_light_irradiance,
-        unit="irradiance",
-    )
+    return _measured(irradiance, s.low_light_irradiance, "irradiance", operator.lt)
 
 
 @predicate("on_floor")
 def on_floor(ctx: TagContext, s: TagSettings) -> TagValue:
     """How far (m) the target's centre is below the table top; holds for a target on the floor."""
     drop = world.TABLE_TOP_Z - float(ctx.data.body(ctx.target).xpos[2])
-    drop = round(drop, 6)
-    return TagValue(holds=drop >= s.on_floor_drop, value=drop, threshold=s.on_floor_drop, unit="m")
+    return _measured(drop, s.on_floor_drop, "m", operator.ge)
 
 
 def measure_tags(ctx: TagContext, settings: TagSettings | None = None) -> dict[str, TagValue]:

@@ -59,6 +59,20 @@ def known_categories() -> tuple[str, ...]:
     return load_catalog().categories
 
 
+def known_task(task: str) -> str:
+    """``task`` if it is in the registry, else a ValueError listing the valid ones."""
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASKS)}")
+    return task
+
+
+def known_pose_name(name: str) -> str:
+    """``name`` if it names a robot pose, else a ValueError listing the valid names."""
+    if name not in ROBOT_POSES:
+        raise ValueError(f"unknown robot pose {name!r}; valid names: {', '.join(ROBOT_POSES)}")
+    return name
+
+
 class Condition(BaseModel):
     """A generation request.
 
@@ -103,9 +117,7 @@ class Condition(BaseModel):
     @field_validator("task")
     @classmethod
     def _known_task(cls, task: str) -> str:
-        if task not in TASKS:
-            raise ValueError(f"unknown task {task!r}; valid tasks: {', '.join(TASKS)}")
-        return task
+        return known_task(task)
 
     @field_validator("target")
     @classmethod
@@ -127,11 +139,7 @@ class Condition(BaseModel):
     @field_validator("robot_pose", mode="before")
     @classmethod
     def _named_pose(cls, pose):
-        if isinstance(pose, str):
-            if pose not in ROBOT_POSES:
-                raise ValueError(f"unknown robot pose {pose!r}; valid names: {', '.join(ROBOT_POSES)}")
-            return ROBOT_POSES[pose]
-        return pose
+        return ROBOT_POSES[known_pose_name(pose)] if isinstance(pose, str) else pose
 
     @field_validator("robot_pose")
     @classmethod
