@@ -284,3 +284,55 @@ def test_run_checks_stops_at_the_first_failure_cheapest_first(catalog, objects, 
     else:
         assert not passed
         assert not results[-1].passed and results[-1].label == failed
+
+
+# ---------------------------------------------------------------- penetration depth
+
+
+def test_deeply_interpenetrating_bowls_give_their_depth_instead_of_aborting(catalog):
+    """Two bowls 4.5 cm apart (proposal 2807 of the reference recipe): fcl's EPA signed distance
+    throws a C++ std::logic_error here that kills the process; the separating-axis depth does not."""
+    bowl = place(catalog, "bowl_a", "bowl", 0.0, 0.0, pose=1)
+    a = bowl.model_copy(
+        update={"position": (-0.2486432, 0.0472862, 0.829667), "quat": (0.022939, 0, 0, -0.9997369)}
+    )
+    b = bowl.model_copy(
+        update={
+            "name": "bowl_b",
+            "position": (-0.2106272, 0.0234887, 0.829667),
+            "quat": (0.2645991, 0, 0, 0.9643585),
+        }
+    )
+    result = collision(catalog, proposal([a, b]))
+    assert not result.passed and result.label == "collision"
+    assert result.value == pytest.approx(-0.0104, abs=5e-4)  # MPR says 3.7 cm: not the minimum
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_separating_axis_depth_matches_fcl_on_shallow_overlaps(catalog, seed: int):
+    """Where fcl's EPA is safe (shallow overlaps between two convex parts), both depths agree."""
+    import fcl
+
+    rng = np.random.default_rng(seed)
+    mug = geometry.object_solid(catalog, place(catalog, "mug", "mug", 0.0, 0.0, pose=2))
+    can = place(catalog, "can", "soup_can", 0.0, 0.0, pose=1, yaw=rng.uniform(-math.pi, math.pi))
+    direction = rng.normal(size=2)
+    direction /= np.linalg.norm(direction)
+    for gap in (-0.004, -0.002, -0.0005):  # metres of overlap between footprint circles
+        reach = 0.0535 + 0.038 + gap  # mug body radius + can radius, then overlapped
+        moved = can.model_copy(update={"position": (*(direction * reach), can.position[2])})
+        solid = geometry.object_solid(catalog, moved)
+        ours = geometry.signed_distance(mug, solid)
+        request = fcl.DistanceRequest(enable_signed_distance=True)
+        theirs = min(
+            fcl.distance(pa, pb, request, fcl.DistanceResult()) for pa in mug.pieces for pb in solid.pieces
+        )
+        assert ours == pytest.approx(theirs, abs=2e-5)
+
+
+def test_penetration_depth_of_two_cubes():
+    cube = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.05
+    axes = np.eye(3)
+    a = geometry.Polytope(cube, axes, axes)
+    b = geometry.Polytope(cube + [0.07, 0.01, 0.0], axes, axes)
+    assert geometry.penetration_depth(a, b) == pytest.approx(0.03)
