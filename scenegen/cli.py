@@ -47,6 +47,18 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         help="output directory (default runs/<name>); the same command on a killed batch resumes it",
     )
+    gen.add_argument(
+        "--request",
+        metavar="TEXT",
+        help="the request, laid over the recipe's condition, e.g. \"retrieve the mug near edge, not "
+        "clutter\" (tags named are required, 'not TAG' forbidden; docs/conditions.md)",
+    )
+    gen.add_argument(
+        "--proposer",
+        choices=("procedural", "targeted"),
+        help="proposer kind instead of the recipe's (keeps its shared settings): procedural = rejection "
+        "sampling from the recipe's distributions; targeted = hand-written rules per required tag",
+    )
     gen.add_argument("--workers", type=int, default=1, help="processes for check/settle/render (default 1)")
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -62,8 +74,13 @@ def _parser() -> argparse.ArgumentParser:
     ref.add_argument("--n", type=int, help="accepted layouts (overrides the recipe's n)")
     ref.add_argument("--seed", type=int, help="seed (overrides the recipe's seed)")
     ref.add_argument("--out", type=Path, default=Path("assets/reference/reference.parquet"))
-    ref.add_argument("--workers", type=int, default=1)
-    ref.add_argument("--quiet", action="store_true")
+    ref.add_argument("--workers", type=int, default=1, help="processes for check/settle/tag (default 1)")
+    ref.add_argument("--quiet", action="store_true", help="no progress bar")
+    ref.add_argument(
+        "--manifest",
+        type=Path,
+        help="also register the table in this project manifest (origin reference), e.g. data_manifest.yaml",
+    )
 
     from scenegen import coverage  # numpy only: cheap to import for --help
 
@@ -114,7 +131,7 @@ def _generate(args: argparse.Namespace) -> int:
     if args.workers < 1:
         return _fail(f"--workers {args.workers}: must be at least 1")
     try:
-        config = load_pipeline(args.pipeline, overrides)
+        config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
     except (ConfigError, CatalogError) as exc:
         return _fail(str(exc))
     out = args.out or Path("runs") / config.name
@@ -166,6 +183,12 @@ def _reference(args: argparse.Namespace) -> int:
     table, _ = read_reference(args.out)
     print(f"{stats['rows']} layouts of {stats['proposals']} proposals -> {args.out}")
     print("tag rates: " + ", ".join(f"{t} {c} ({r:.1%})" for t, (c, r) in tag_rates(table).items()))
+    if args.manifest:
+        from scenegen.manifest import register_source
+        from scenegen.reference import reference_source
+
+        register_source(args.manifest, reference_source(args.out, args.manifest.parent))
+        print(f"registered as source 'reference' in {args.manifest}")
     return 0
 
 

@@ -9,15 +9,23 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from scenegen.check.geometry import CheckSettings
+from scenegen.propose.base import impossible_request
 from scenegen.propose.procedural import ProceduralSettings
-from scenegen.schema.condition import Condition
+from scenegen.propose.targeted import TargetedSettings
+from scenegen.schema.condition import Condition, parse_request
 from scenegen.settle import SettleSettings
 from scenegen.tags import TagSettings
+
+PROPOSER_SETTINGS: dict[str, type[ProceduralSettings]] = {
+    "procedural": ProceduralSettings,
+    "targeted": TargetedSettings,
+}
 
 
 class ConfigError(ValueError):
@@ -29,7 +37,8 @@ class PipelineConfig(BaseModel):
 
     Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
     many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
-    (``kind: procedural`` and its settings, cameras included); ``checks``; ``settle``; ``render``.
+    (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
+    ``settle``; ``render``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -39,11 +48,22 @@ class PipelineConfig(BaseModel):
     seed: int = Field(0, ge=0, lt=2**63)
     max_proposals: int | None = Field(None, ge=1)
     condition: Condition = Condition()
-    proposer: ProceduralSettings = ProceduralSettings()
+    proposer: Annotated[ProceduralSettings | TargetedSettings, Field(discriminator="kind")] = (
+        ProceduralSettings()
+    )
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
     tags: TagSettings = TagSettings()
     render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
+
+    @model_validator(mode="after")
+    def _reachable_request(self):
+        from scenegen.assets.catalog import load_catalog
+
+        problem = impossible_request(self.condition, load_catalog())
+        if problem:
+            raise ValueError(f"condition: {problem}")
+        return self
 
     @property
     def proposal_cap(self) -> int:
@@ -68,17 +88,27 @@ def _fields_at(model: type[BaseModel], loc: tuple) -> list[str]:
 
 def _format_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
-    where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    where = ".".join(str(p) for p in err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden":
         valid = ", ".join(_fields_at(PipelineConfig, err["loc"][:-1]))
         msg = f"unknown key; valid keys here: {valid} (docs/pipelines.md)"
     more = f" (+{len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
-    return f"{path}: {where}: {msg}{more}"
+    return f"{path}: {where + ': ' if where else ''}{msg}{more}"
 
 
-def load_pipeline(path: str | Path, overrides: dict | None = None) -> PipelineConfig:
-    """Read, merge top-level ``overrides`` (e.g. n, seed) and validate a pipeline file."""
+def load_pipeline(
+    path: str | Path,
+    overrides: dict | None = None,
+    request: str | None = None,
+    proposer: str | None = None,
+) -> PipelineConfig:
+    """Read, merge top-level ``overrides`` (e.g. n, seed) and validate a pipeline file.
+
+    ``request``: free text (:func:`~scenegen.schema.condition.parse_request`) laid over the recipe's
+    condition: the task, target and pose it names replace the recipe's, the tags it names are set.
+    ``proposer``: another proposer kind, keeping the recipe's proposer settings that kind shares.
+    """
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: no such pipeline file; bundled ones are in pipelines/")
@@ -93,6 +123,21 @@ def load_pipeline(path: str | Path, overrides: dict | None = None) -> PipelineCo
             f"{path}: a pipeline file must be a mapping of keys (name, n, seed, condition, ...)"
         )
     raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    if request is not None:
+        try:
+            parsed = parse_request(request)
+        except ValueError as exc:
+            raise ConfigError(f"--request: {exc}") from None
+        condition = dict(raw.get("condition") or {})
+        condition["tags"] = {**(condition.get("tags") or {}), **parsed.pop("tags", {})}
+        condition.update(parsed)
+        raw["condition"] = condition
+    if proposer is not None:
+        settings = PROPOSER_SETTINGS.get(proposer)
+        if settings is None:
+            raise ConfigError(f"--proposer {proposer}: unknown kind; valid: {', '.join(PROPOSER_SETTINGS)}")
+        shared = {k: v for k, v in (raw.get("proposer") or {}).items() if k in settings.model_fields}
+        raw["proposer"] = {**shared, "kind": proposer}
     try:
         return PipelineConfig(**raw)
     except ValidationError as exc:

@@ -252,3 +252,33 @@ def read_jsonl(path: Path) -> list[dict]:
     if not path.exists():
         return []
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def measure_stored_scene(scene_dir: Path, catalog=None, settings=None) -> dict:
+    """Recompute every tag of a stored scene from its files alone: scene.xml at its keyframe (the
+    settled state) and the placements, lighting and main camera in scene.json. ``settings``: the
+    batch recipe's thresholds (``PipelineConfig.tags``; default the defaults). Returns tag -> TagValue,
+    to compare with the tags the pipeline recorded."""
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.settle import contact_configuration
+    from scenegen.tags import TagContext, measure_tags
+
+    scene_dir = Path(scene_dir)
+    record = SceneRecord.model_validate_json((scene_dir / "scene.json").read_text())
+    model = mujoco.MjModel.from_xml_path(str(scene_dir / "scene.xml"))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_forward(model, data)
+    names = [o.name for o in record.objects]
+    context = TagContext.of_scene(
+        model,
+        data,
+        catalog or load_catalog(),
+        record.target,
+        record.objects,
+        record.furniture,
+        record.lighting,
+        record.cameras[0]["position"],
+        contact_configuration(model, data.qpos, names),
+    )
+    return measure_tags(context, settings)

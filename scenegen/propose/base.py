@@ -43,6 +43,23 @@ def register_proposer(kind: str):
     return decorate
 
 
+def non_upright(asset: Asset) -> list[int]:
+    """Indices of the asset's resting poses that are not upright (where its target is ``toppled``)."""
+    return [i for i, p in enumerate(asset.resting_poses) if not p.upright]
+
+
+def impossible_request(condition: Condition, catalog) -> str | None:
+    """Why no scene of this catalog can meet the request whatever the proposer, or None."""
+    if "toppled" in condition.required() and not any(
+        non_upright(a) for a in catalog.of_category(condition.target)
+    ):
+        return (
+            f"required tag toppled: no {condition.target} asset has a non-upright resting pose, so no "
+            "scene can hold it; request another target"
+        )
+    return None
+
+
 def proposal_rng(seed: int, index: int) -> np.random.Generator:
     """The random generator of proposal ``index`` in a batch with ``seed``."""
     return np.random.default_rng(np.random.SeedSequence([seed, index]))
