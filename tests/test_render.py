@@ -21,12 +21,11 @@ import cv2
 import mujoco
 import numpy as np
 import pytest
-import yaml
+from scenes import SMALL, small_recipe
 from scipy import ndimage
 
 from scenegen import world
 from scenegen.cli import main
-from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.render import SceneRenderer, encode_png
 from scenegen.schema.scene import Camera
 
@@ -37,30 +36,11 @@ ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_")  # robosuite's P
 DEPTH_TOL_MM = 5.0
 MAX_RERENDER_RGB = 1e-4  # share of RGB pixels a re-render of scene.xml may change
 MAX_SEG_MISMATCH = 0.002  # share of pixels whose id differs from the ray cast through their centre
-SMALL = (160, 120)  # width, height of the cameras of the small batch
 USAGE_ERROR = 2
 PREFIX = "scenegen: error: "
 
 
 # ---------------------------------------------------------------- helpers
-
-
-def small_recipe(path: Path, n: int, size: tuple[int, int] = SMALL) -> Path:
-    """pipelines/demo.yaml with two small cameras (front, side) at the default poses."""
-    recipe = yaml.safe_load(DEMO.read_text())
-    recipe["n"] = n
-    recipe["proposer"]["cameras"] = [
-        {
-            "name": cam.name,
-            "position": list(cam.position),
-            "lookat": list(cam.lookat),
-            "width": size[0],
-            "height": size[1],
-        }
-        for cam in DEFAULT_CAMERAS
-    ]
-    path.write_text(yaml.safe_dump(recipe, sort_keys=False))
-    return path
 
 
 def scene_dirs(batch: Path) -> list[Path]:

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import functools
+
 import mujoco
 import numpy as np
 import pytest
+import scenes
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
-from scenegen.propose.base import snap_to_rest
-from scenegen.schema.condition import Condition
-from scenegen.schema.scene import Lighting, ObjectPlacement, SceneProposal
 from scenegen.settle import SettleSettings, contact_configuration, passive_test, settle
 
 SETTINGS = SettleSettings()
@@ -22,36 +22,16 @@ def catalog():
     return load_catalog()
 
 
-def place(catalog, name, asset, x, y, *, pose=0, lift=0.0):
-    """An object snapped onto resting pose ``pose`` on the table at (x, y), raised by ``lift`` metres."""
-    a = catalog.get(asset)
-    surface = world.support_surfaces(())["table"]
-    position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), a.resting_poses[pose].quat, surface)
-    return ObjectPlacement(
-        name=name,
-        asset=asset,
-        category=a.category,
-        position=(position[0], position[1], position[2] + lift),
-        quat=quat,
-        resting_pose=index,
-    )
+# These scenes never required the snap to keep the requested resting pose.
+place = functools.partial(scenes.place, check_pose=False)
 
 
 def run_settle(catalog, objects, settings=SETTINGS):
     """Build, compile and settle a table scene; returns (model, proposal, outcome)."""
-    proposal = SceneProposal(
-        index=0,
-        seed=0,
-        condition=Condition(target=objects[0].category),
-        target=objects[0].name,
-        objects=tuple(objects),
-        furniture=(),
-        lighting=Lighting(lights=()),
-        cameras=(),
-    )
-    model = world.build_world(catalog, proposal.objects).compile()
-    qpos, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
-    return model, proposal, settle(model, proposal, qpos, ctrl, settings, catalog)
+    p = scenes.proposal(objects)
+    model = world.build_world(catalog, p.objects).compile()
+    qpos, ctrl = world.initial_state(model, p.condition.robot_pose, p.objects)
+    return model, p, settle(model, p, qpos, ctrl, settings, catalog)
 
 
 @pytest.fixture(scope="module")

@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 import pytest
+from scenes import place, proposal
 
 from scenegen import tags, world
 from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.check.geometry import quat_to_matrix
-from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import DEFAULT_CAMERAS, FURNITURE_HOME
 from scenegen.render import SceneRenderer, segmentation_ids
 from scenegen.schema.condition import RARE_TAGS, Condition
@@ -35,7 +35,6 @@ from scenegen.schema.scene import (
     Light,
     Lighting,
     ObjectPlacement,
-    SceneProposal,
     TagValue,
 )
 from scenegen.settle import SettleSettings, contact_configuration, settle
@@ -69,27 +68,6 @@ def catalog():
 
 
 # ---------------------------------------------------------------- hand-built scenes
-
-
-def place(catalog, name, asset, x, y, *, pose=0, yaw=0.0, support="table", furniture=(), below=()):
-    """An object snapped onto resting pose ``pose`` of ``support`` at (x, y) with yaw ``yaw``.
-
-    ``below`` lists placed objects whose tops are supports (stacking: ``support`` is then one's name).
-    """
-    a = catalog.get(asset)
-    surface = world.support_surfaces(furniture, below, catalog)[support]
-    raw_quat = quat_mul(yaw_quat(yaw), np.asarray(a.resting_poses[pose].quat))
-    position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), raw_quat, surface)
-    assert index == pose
-    return ObjectPlacement(
-        name=name,
-        asset=asset,
-        category=a.category,
-        position=position,
-        quat=quat,
-        support=support,
-        resting_pose=index,
-    )
 
 
 @dataclass
@@ -128,20 +106,11 @@ class Scene:
 
 def build(catalog: Catalog, r: Recipe) -> Scene:
     objects = tuple(r.objects)
-    proposal = SceneProposal(
-        index=0,
-        seed=0,
-        condition=Condition(target=objects[0].category),
-        target=r.target or objects[0].name,
-        objects=objects,
-        furniture=tuple(r.furniture),
-        lighting=r.lighting,
-        cameras=(FRONT,),
-    )
+    p = proposal(objects, r.furniture, r.target, lighting=r.lighting, cameras=(FRONT,))
     model = world.build_world(catalog, objects, r.furniture, r.lighting, [FRONT]).compile()
-    qpos, ctrl = world.initial_state(model, proposal.condition.robot_pose, objects)
+    qpos, ctrl = world.initial_state(model, p.condition.robot_pose, objects)
     if r.settled:
-        outcome = settle(model, proposal, qpos, ctrl, SettleSettings(), catalog)
+        outcome = settle(model, p, qpos, ctrl, SettleSettings(), catalog)
         assert outcome.passed, outcome.checks
         qpos = outcome.qpos
     data = mujoco.MjData(model)

@@ -20,13 +20,10 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
+from scenes import small_recipe
 
 from scenegen.cli import main
-from scenegen.propose.procedural import DEFAULT_CAMERAS
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEMO = REPO_ROOT / "pipelines" / "demo.yaml"
 N = 6
 SEED = 1  # a seed whose first proposals include rejections
 NOT_COMPARED = {"timings.json"}  # wall-clock times
@@ -35,24 +32,6 @@ PREFIX = "scenegen: error: "
 
 
 # ---------------------------------------------------------------- helpers
-
-
-def small_recipe(path: Path, size: tuple[int, int] = (160, 120)) -> Path:
-    """pipelines/demo.yaml with two small cameras (front, side) at the default poses."""
-    recipe = yaml.safe_load(DEMO.read_text())
-    recipe["proposer"]["cameras"] = [
-        {
-            "name": cam.name,
-            "position": list(cam.position),
-            "lookat": list(cam.lookat),
-            "width": size[0],
-            "height": size[1],
-        }
-        for cam in DEFAULT_CAMERAS
-    ]
-    recipe["proposer"]["n_objects"] = [5, 8]  # crowded enough that some proposals are rejected
-    path.write_text(yaml.safe_dump(recipe, sort_keys=False))
-    return path
 
 
 def generate_cmd(recipe: Path, out: Path, workers: int, n: int = N, seed: int = SEED) -> list[str]:
@@ -179,7 +158,8 @@ def start_and_kill(cmd: list[str], ready, timeout: float = 180.0) -> dict:
 
 @pytest.fixture(scope="module")
 def recipe(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return small_recipe(tmp_path_factory.mktemp("recipe") / "small.yaml")
+    # Crowded enough that some proposals are rejected.
+    return small_recipe(tmp_path_factory.mktemp("recipe") / "small.yaml", n_objects=[5, 8])
 
 
 @pytest.fixture(scope="module")

@@ -2,36 +2,25 @@
 
 from __future__ import annotations
 
+import functools
+
 import mujoco
 import numpy as np
 import pytest
+import scenes
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
-from scenegen.propose.base import snap_to_rest
 from scenegen.propose.procedural import FURNITURE_HOME
 from scenegen.schema.condition import ROBOT_POSES
-from scenegen.schema.scene import Camera, FurniturePlacement, Light, Lighting, ObjectPlacement
+from scenegen.schema.scene import Camera, FurniturePlacement, Light, Lighting
 
 HOLD_TIME = 2.0  # s of passive simulation
 EE_BODY = "gripper0_eef"
 
 
-def place(catalog, name, asset, x, y, *, pose=0, support="table", furniture=(), scale=1.0):
-    """An object snapped onto resting pose ``pose`` of ``support`` at (x, y)."""
-    a = catalog.get(asset)
-    surface = world.support_surfaces(furniture)[support]
-    position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), a.resting_poses[pose].quat, surface, scale)
-    return ObjectPlacement(
-        name=name,
-        asset=asset,
-        category=a.category,
-        position=position,
-        quat=quat,
-        scale=scale,
-        support=support,
-        resting_pose=index,
-    )
+# These scenes never required the snap to keep the requested resting pose.
+place = functools.partial(scenes.place, check_pose=False)
 
 
 @pytest.fixture(scope="module")

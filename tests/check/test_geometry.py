@@ -6,15 +6,15 @@ import math
 
 import numpy as np
 import pytest
+from scenes import place, proposal
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
 from scenegen.check import geometry
 from scenegen.check.geometry import CheckSettings
-from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import FURNITURE_HOME
 from scenegen.schema.condition import Condition
-from scenegen.schema.scene import FurniturePlacement, Lighting, ObjectPlacement, SceneProposal
+from scenegen.schema.scene import FurniturePlacement
 
 CHECK_ORDER = ["workspace", "support", "collision", "robot_clearance", "reachability"]
 SETTINGS = CheckSettings()
@@ -26,37 +26,6 @@ BOX = 0.06  # small_box footprint side (m)
 @pytest.fixture(scope="module")
 def catalog():
     return load_catalog()
-
-
-def place(catalog, name, asset, x, y, *, pose=0, yaw=0.0, lift=0.0, support="table", furniture=()):
-    """An object snapped onto resting pose ``pose`` of ``support`` at (x, y), raised by ``lift`` metres."""
-    a = catalog.get(asset)
-    surface = world.support_surfaces(furniture)[support]
-    raw_quat = quat_mul(yaw_quat(yaw), np.asarray(a.resting_poses[pose].quat))
-    position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), raw_quat, surface)
-    assert index == pose
-    return ObjectPlacement(
-        name=name,
-        asset=asset,
-        category=a.category,
-        position=(position[0], position[1], position[2] + lift),
-        quat=quat,
-        support=support,
-        resting_pose=index,
-    )
-
-
-def proposal(objects, furniture=(), target=None):
-    return SceneProposal(
-        index=0,
-        seed=0,
-        condition=Condition(target=objects[0].category),
-        target=target or objects[0].name,
-        objects=tuple(objects),
-        furniture=tuple(furniture),
-        lighting=Lighting(lights=()),
-        cameras=(),
-    )
 
 
 def collision(catalog, p):

@@ -1,0 +1,115 @@
+"""Hand-built scene helpers shared by the tests: snapped object placements, bare proposals, small recipes.
+
+A plain module, not a conftest: test modules import it as ``from scenes import ...`` (pytest's default
+"prepend" import mode puts tests/ on sys.path when it loads tests/conftest.py).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from scenegen import world
+from scenegen.assets.catalog import Catalog
+from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
+from scenegen.propose.procedural import DEFAULT_CAMERAS
+from scenegen.schema.condition import Condition
+from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement, SceneProposal
+
+DEMO = Path(__file__).resolve().parents[1] / "pipelines" / "demo.yaml"
+SMALL = (160, 120)  # width, height of the cameras of small_recipe
+
+
+def place(
+    catalog: Catalog,
+    name: str,
+    asset: str,
+    x: float,
+    y: float,
+    *,
+    pose: int = 0,
+    yaw: float = 0.0,
+    lift: float = 0.0,
+    scale: float = 1.0,
+    support: str = "table",
+    furniture: Sequence[FurniturePlacement] = (),
+    below: Sequence[ObjectPlacement] = (),
+    check_pose: bool = True,
+) -> ObjectPlacement:
+    """An object snapped onto resting pose ``pose`` of ``support`` at (x, y) with yaw ``yaw``, raised by
+    ``lift`` metres.
+
+    ``below`` lists placed objects whose tops are supports (stacking: ``support`` is then one's name).
+    With ``check_pose`` the snap must keep resting pose ``pose``.
+    """
+    a = catalog.get(asset)
+    surface = world.support_surfaces(furniture, below, catalog)[support]
+    raw_quat = quat_mul(yaw_quat(yaw), np.asarray(a.resting_poses[pose].quat))
+    position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), raw_quat, surface, scale)
+    if check_pose:
+        assert index == pose
+    return ObjectPlacement(
+        name=name,
+        asset=asset,
+        category=a.category,
+        position=(position[0], position[1], position[2] + lift),
+        quat=quat,
+        scale=scale,
+        support=support,
+        resting_pose=index,
+    )
+
+
+def proposal(
+    objects: Sequence[ObjectPlacement],
+    furniture: Sequence[FurniturePlacement] = (),
+    target: str | None = None,
+    *,
+    lighting: Lighting | None = None,
+    cameras: Sequence[Camera] = (),
+) -> SceneProposal:
+    """A proposal of ``objects`` for the first one's category; ``target`` defaults to the first object,
+    ``lighting`` to no lights at all."""
+    return SceneProposal(
+        index=0,
+        seed=0,
+        condition=Condition(target=objects[0].category),
+        target=target or objects[0].name,
+        objects=tuple(objects),
+        furniture=tuple(furniture),
+        lighting=Lighting(lights=()) if lighting is None else lighting,
+        cameras=tuple(cameras),
+    )
+
+
+def small_recipe(
+    path: Path,
+    size: tuple[int, int] = SMALL,
+    *,
+    n: int | None = None,
+    n_objects: list[int] | None = None,
+) -> Path:
+    """pipelines/demo.yaml with two small cameras (front, side) at the default poses, written to ``path``.
+
+    ``n`` (scenes) and ``n_objects`` (the proposer's range) replace the recipe's when given.
+    """
+    recipe = yaml.safe_load(DEMO.read_text())
+    if n is not None:
+        recipe["n"] = n
+    recipe["proposer"]["cameras"] = [
+        {
+            "name": cam.name,
+            "position": list(cam.position),
+            "lookat": list(cam.lookat),
+            "width": size[0],
+            "height": size[1],
+        }
+        for cam in DEFAULT_CAMERAS
+    ]
+    if n_objects is not None:
+        recipe["proposer"]["n_objects"] = n_objects
+    path.write_text(yaml.safe_dump(recipe, sort_keys=False))
+    return path
