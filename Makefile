@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast lint assets bench clean
+.PHONY: setup demo test test-fast test-full lint assets bench bench-rare clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,12 +25,18 @@ test: setup  ## the whole test suite, as CI runs it
 test-fast: setup  ## everything but the slow end-to-end tests
 	$(BIN)/python -m pytest -q -m "not slow"
 
+test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~35 min)
+	$(BIN)/python -m pytest -q --full -m full
+
 lint: setup
 	$(BIN)/ruff check scenegen tests benchmarks
 	$(BIN)/ruff format --check scenegen tests benchmarks
 
 bench: setup  ## pipeline throughput with 1 and 2 workers (benchmarks/pipeline_throughput.py)
 	$(BIN)/python benchmarks/pipeline_throughput.py
+
+bench-rare: setup  ## rare-case baselines: yield per CPU-second per tag (benchmarks/rare_case_yield.py)
+	$(BIN)/python benchmarks/rare_case_yield.py
 
 assets: setup  ## rebuild assets/ (meshes, convex parts, catalog); coacd runs only for changed meshes
 	$(BIN)/python -m scenegen.assets.authoring

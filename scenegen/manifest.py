@@ -33,7 +33,8 @@ class Source(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str
     origin: Literal["real", "reference", "synthetic"]
-    location: str  # directory, relative to the manifest's folder
+    location: str  # directory or file, relative to the manifest's folder
+    sha256: str | None = None  # of the file, for a single-file source (a Parquet table)
     counts: Counts
     description: str = ""
     generator: dict | None = None  # synthetic: proposer kind and settings
@@ -103,3 +104,13 @@ def write_manifest(path: Path, manifest: Manifest) -> None:
 
 def read_manifest(path: Path) -> Manifest:
     return Manifest(**yaml.safe_load(Path(path).read_text()))
+
+
+def register_source(path: Path, source: Source) -> Manifest:
+    """Add ``source`` to the project manifest at ``path`` (replacing one of the same name), atomically."""
+    path = Path(path)
+    manifest = read_manifest(path) if path.is_file() else Manifest(kind="project")
+    sources = [s for s in manifest.sources if s.name != source.name]
+    manifest = manifest.model_copy(update={"sources": [*sources, source]})
+    write_manifest(path, manifest)
+    return manifest

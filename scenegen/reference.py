@@ -23,7 +23,7 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.config import PipelineConfig
 from scenegen.pipeline import ordered_outcomes
 from scenegen.propose.base import PROPOSERS
-from scenegen.schema.condition import TAGS, TASKS, Condition
+from scenegen.schema.condition import ROBOT_POSES, TAGS, TASKS, Condition
 from scenegen.schema.scene import SceneProposal, SceneRecord
 from scenegen.tags import PREDICATE_VERSION
 
@@ -31,13 +31,14 @@ HELDOUT_EVERY = 5  # proposal index % 5 == 0 -> held out
 
 
 def request_for(config: PipelineConfig, index: int, categories: tuple[str, ...]) -> Condition:
-    """The (task, target) of reference layout ``index``: uniform, from SeedSequence([seed, index, 1])."""
+    """The (task, target, robot pose) of reference layout ``index``: each uniform over the task
+    registry, the catalog's categories and the named robot poses, from SeedSequence([seed, index, 1])."""
     rng = np.random.default_rng(np.random.SeedSequence([config.seed, index, 1]))
-    tasks = sorted(TASKS)
+    tasks, poses = sorted(TASKS), sorted(ROBOT_POSES)
     return Condition(
         task=tasks[int(rng.integers(len(tasks)))],
         target=categories[int(rng.integers(len(categories)))],
-        robot_pose=config.condition.robot_pose,
+        robot_pose=poses[int(rng.integers(len(poses)))],
     )
 
 
@@ -58,6 +59,7 @@ def layout_row(record: SceneRecord) -> dict:
         "target_category": target.category,
         "target_asset": target.asset,
         "target": record.target,
+        "robot_pose": list(record.condition.robot_pose),
         "n_objects": len(record.objects),
         "objects": [
             {
@@ -154,3 +156,32 @@ def tag_rates(table) -> dict[str, tuple[int, float]]:
 
 def file_sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+REFERENCE_DESCRIPTION = (
+    "stands in for real tabletop data: procedural layouts (pipelines/reference.yaml) through check, "
+    "settle and tag, no images; rare tags at natural rates of 1-5 %; every fifth layout held out"
+)
+
+
+def reference_source(path: Path, manifest_dir: Path, name: str = "reference"):
+    """The manifest entry of a reference Parquet file, counts and provenance read from the file."""
+    from scenegen.manifest import Counts, Source
+
+    table, meta = read_reference(path)
+    proposals = int(meta["proposals"])
+    labels = dict(item.split("=") for item in meta["rejections"].split(",") if item)
+    return Source(
+        name=name,
+        origin="reference",
+        location=os.path.relpath(Path(path).resolve(), Path(manifest_dir).resolve()),
+        sha256=file_sha256(path),
+        counts=Counts(scenes=table.num_rows, rejected=proposals - table.num_rows, proposals=proposals),
+        description=REFERENCE_DESCRIPTION,
+        generator={"kind": "procedural"},
+        pipeline={"name": "reference", "sha256": meta["pipeline_sha256"], "file": "pipelines/reference.yaml"},
+        seed=int(meta["seed"]),
+        rejections_by_label={k: int(v) for k, v in sorted(labels.items())},
+        catalog_sha256=meta["catalog_sha256"],
+        predicate_version=meta["predicate_version"],
+    )

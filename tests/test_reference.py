@@ -6,9 +6,18 @@ from pathlib import Path
 
 import pytest
 
+from scenegen.assets.catalog import load_catalog
 from scenegen.config import load_pipeline
-from scenegen.reference import HELDOUT_EVERY, build_reference, read_reference, tag_rates
-from scenegen.schema.condition import TAGS, TASKS
+from scenegen.manifest import read_manifest
+from scenegen.reference import (
+    HELDOUT_EVERY,
+    build_reference,
+    file_sha256,
+    read_reference,
+    reference_source,
+    tag_rates,
+)
+from scenegen.schema.condition import RARE_TAGS, TAGS, TASKS
 from scenegen.tags import PREDICATE_VERSION
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -43,3 +52,57 @@ def test_rows_metadata_and_columns(tables):
 def test_a_smaller_run_is_a_prefix_of_a_larger_one(tables):
     (_, small, _), (_, large, _) = tables
     assert small.to_pylist() == large.slice(0, small.num_rows).to_pylist()
+
+
+# ---------------------------------------------------------------- the committed reference set
+
+COMMITTED = REPO_ROOT / "assets" / "reference" / "reference.parquet"
+PREFIX = 200
+
+
+@pytest.fixture(scope="module")
+def committed():
+    return read_reference(COMMITTED)
+
+
+def test_committed_reference_meets_the_rates_and_counts(committed):
+    table, _ = committed
+    rates = tag_rates(table)
+    for tag in RARE_TAGS:
+        count, rate = rates[tag]
+        assert 0.01 <= rate <= 0.05, f"{tag}: natural rate {rate:.2%} outside 1-5 %"
+        assert count >= 150, f"{tag}: {count} examples, fewer than 150"
+    assert rates["nominal"][1] >= 0.60
+    heldout = table.column("split").to_pylist().count("heldout")
+    assert abs(heldout / table.num_rows - 1 / HELDOUT_EVERY) < 0.02
+
+
+def test_committed_reference_matches_this_code(committed):
+    """Stamped with today's predicates, catalog and recipe: otherwise regenerate it (README)."""
+    _, meta = committed
+    assert meta["predicate_version"] == PREDICATE_VERSION
+    assert meta["catalog_sha256"] == load_catalog().sha256
+    assert meta["pipeline_sha256"] == load_pipeline(RECIPE).digest()
+
+
+def test_committed_reference_prefix_regenerates_bit_for_bit(committed, tmp_path: Path):
+    table, _ = committed
+    config = load_pipeline(RECIPE, {"n": PREFIX})
+    build_reference(config, tmp_path / "prefix.parquet", workers=2, progress=False)
+    prefix, _ = read_reference(tmp_path / "prefix.parquet")
+    assert prefix.to_pylist() == table.slice(0, PREFIX).to_pylist()
+
+
+@pytest.mark.full
+def test_committed_reference_regenerates_bit_for_bit(tmp_path: Path):
+    out = tmp_path / "reference.parquet"
+    build_reference(load_pipeline(RECIPE), out, workers=2, progress=False)
+    assert file_sha256(out) == file_sha256(COMMITTED)
+
+
+def test_project_manifest_registers_the_committed_reference():
+    """data_manifest.yaml's reference entry agrees with the file: checksum, counts, versions."""
+    manifest = read_manifest(REPO_ROOT / "data_manifest.yaml")
+    (source,) = [s for s in manifest.sources if s.origin == "reference"]
+    assert source == reference_source(COMMITTED, REPO_ROOT)
+    assert "stands in" in source.description
