@@ -25,7 +25,7 @@ test: setup  ## the whole test suite, as CI runs it
 test-fast: setup  ## everything but the slow end-to-end tests
 	$(BIN)/python -m pytest -q -m "not slow"
 
-test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~35 min)
+test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)
 	$(BIN)/python -m pytest -q --full -m full
 
 lint: setup

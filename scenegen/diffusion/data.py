@@ -1,0 +1,125 @@
+"""Training data for the diffusion generator: layouts as tensors, and the conditions they are trained with.
+
+Each layout (a reference Parquet row) gives its tokens (:mod:`scenegen.diffusion.encoding`) and its
+*full* condition: its task, target category and robot pose, and for every rare tag ``required`` if
+the measured tag holds and ``forbidden`` if it does not. Training shows the model partial versions of
+that condition (:func:`training_conditions`): each tag independently becomes ``unspecified`` with
+probability ``p_unspecified`` (so a request that leaves a tag open gets that tag's natural rate), each
+field is independently dropped to its null value with probability ``p_field``, and the whole
+condition is null with probability ``p_null`` (the unconditional branch of classifier-free guidance).
+
+Rare examples may be oversampled for the conditional branch only (:func:`batch_indices`): the rare
+draws are never given the null condition, so the unconditional model still learns the data's rates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from scenegen.diffusion.encoding import SceneEncoding
+from scenegen.diffusion.model import FORBIDDEN, NULL, REQUIRED, UNSPECIFIED, ConditionBatch
+from scenegen.schema.condition import RARE_TAGS, TASKS
+
+
+@dataclass
+class LayoutTensors:
+    """A dataset of N layouts: tokens (N, slots, object_width), scene (N, scene_width), task (N,),
+    target (N,), tags (N, n_tags) bool (measured), pose (N, 7)."""
+
+    objects: torch.Tensor
+    scene: torch.Tensor
+    task: torch.Tensor
+    target: torch.Tensor
+    tags: torch.Tensor
+    pose: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.task)
+
+
+def tasks() -> tuple[str, ...]:
+    return tuple(sorted(TASKS))
+
+
+def layout_tensors(rows: list[dict], encoding: SceneEncoding) -> LayoutTensors:
+    """Tensors of reference-style rows (``reference.layout_row``), in row order."""
+    categories = encoding.catalog.categories
+    objects, scene = zip(*(encoding.encode_row(r) for r in rows), strict=True)
+    return LayoutTensors(
+        objects=torch.tensor(np.stack(objects), dtype=torch.float32),
+        scene=torch.tensor(np.stack(scene), dtype=torch.float32),
+        task=torch.tensor([tasks().index(r["task"]) for r in rows]),
+        target=torch.tensor([categories.index(r["target_category"]) for r in rows]),
+        tags=torch.tensor([[bool(r[f"tag_{t}"]) for t in RARE_TAGS] for r in rows]),
+        pose=torch.tensor([r["robot_pose"] for r in rows], dtype=torch.float32),
+    )
+
+
+def rare_weights(tags: torch.Tensor) -> torch.Tensor:
+    """Sampling weight per layout: 1 / (rate of its rarest held tag), 0 for layouts holding none."""
+    rates = tags.float().mean(0).clamp_min(1.0 / max(len(tags), 1))
+    inverse = torch.where(tags, 1.0 / rates, torch.zeros_like(rates))
+    return inverse.max(dim=1).values
+
+
+def batch_indices(
+    data: LayoutTensors, size: int, rare_share: float, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices of a training batch and a bool mask of the rows drawn by rare oversampling.
+
+    ``rare_share`` of the batch is drawn with :func:`rare_weights`, the rest uniformly."""
+    n_rare = int(round(size * rare_share))
+    uniform = torch.randint(0, len(data), (size - n_rare,), generator=generator)
+    weights = rare_weights(data.tags)
+    if n_rare and weights.sum() > 0:
+        rare = torch.multinomial(weights, n_rare, replacement=True, generator=generator)
+    else:
+        rare = torch.randint(0, len(data), (n_rare,), generator=generator)
+    mask = torch.cat([torch.zeros(len(uniform), dtype=torch.bool), torch.ones(len(rare), dtype=torch.bool)])
+    return torch.cat([uniform, rare]), mask
+
+
+def full_condition(data: LayoutTensors, rows: torch.Tensor) -> ConditionBatch:
+    """The full condition of layouts ``rows``: every tag required or forbidden as measured."""
+    tags = torch.where(data.tags[rows], torch.tensor(REQUIRED), torch.tensor(FORBIDDEN))
+    return ConditionBatch(
+        task=data.task[rows].clone(),
+        target=data.target[rows].clone(),
+        tags=tags,
+        pose=data.pose[rows].clone(),
+        pose_null=torch.zeros(len(rows), dtype=torch.bool),
+    )
+
+
+def training_conditions(
+    data: LayoutTensors,
+    rows: torch.Tensor,
+    rare: torch.Tensor,
+    n_tasks: int,
+    n_targets: int,
+    generator: torch.Generator,
+    p_null: float = 0.1,
+    p_field: float = 0.1,
+    p_unspecified: float = 0.5,
+) -> ConditionBatch:
+    """Partial conditions for a batch (see the module docstring); ``rare`` rows are never fully null."""
+    c = full_condition(data, rows)
+    n, n_tags = c.tags.shape
+
+    def draw(*shape: int) -> torch.Tensor:
+        return torch.rand(*shape, generator=generator)
+
+    c.tags = torch.where(draw(n, n_tags) < p_unspecified, torch.tensor(UNSPECIFIED), c.tags)
+    c.tags = torch.where(draw(n, n_tags) < p_field, torch.tensor(NULL), c.tags)
+    c.task = torch.where(draw(n) < p_field, torch.tensor(n_tasks), c.task)
+    c.target = torch.where(draw(n) < p_field, torch.tensor(n_targets), c.target)
+    c.pose_null = draw(n) < p_field
+    null = (draw(n) < p_null) & ~rare
+    c.task = torch.where(null, torch.tensor(n_tasks), c.task)
+    c.target = torch.where(null, torch.tensor(n_targets), c.target)
+    c.tags = torch.where(null[:, None], torch.tensor(NULL), c.tags)
+    c.pose_null = c.pose_null | null
+    return c

@@ -1,0 +1,282 @@
+"""Scene <-> tensor: the fixed-size representation the diffusion model denoises.
+
+A scene is ``SLOTS`` object tokens plus one scene token, every entry scaled to about [-1, 1]:
+
+object token (``object_width``; an empty slot is all -1 with ``present`` -1):
+    present (+1/-1), asset one-hot (catalog order, +1/-1), resting-pose one-hot (``max_poses``),
+    support one-hot (``SUPPORTS``), x, y and height above the table top, each / 0.5 m, cos and sin
+    of the yaw about the resting pose, target flag (+1 for the target, -1 otherwise)
+scene token (``scene_width``):
+    per furniture kind: present, dx / 0.05 m and dy / 0.05 m from its home position;
+    ambient ((a - 0.15) / 0.15); per light slot (``LIGHT_SLOTS``): present, position / 2.5 m
+    (x, y, and z above the table top), aim point on the table / 0.5 m (x, y), tint / 0.2,
+    (intensity - 0.6) / 0.6, casts shadow
+
+Decoding snaps every object onto a stable resting pose of its asset at its support's height
+(objects on the table, floor and furniture first, then stacked ones on the nearest object below
+whose top holds them) and reports how far that moved its centre (``projection_distance``): the
+decoded height against the height the support and resting pose dictate. Encoding the settled layout of a
+stored or reference scene takes each object's nearest resting pose to its settled orientation.
+Pure numpy; no MuJoCo, no torch.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenegen import world
+from scenegen.assets.catalog import Catalog
+from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
+from scenegen.propose.procedural import FURNITURE_HOME
+from scenegen.schema.condition import Condition
+from scenegen.schema.scene import (
+    Camera,
+    FurniturePlacement,
+    Light,
+    Lighting,
+    ObjectPlacement,
+    SceneProposal,
+)
+
+SLOTS = 8
+LIGHT_SLOTS = 3
+SUPPORTS = ("table", "floor", "shelf", "bin", "stacked")
+FURNITURE_KINDS = tuple(sorted(FURNITURE_HOME))
+XY_SCALE = 0.5  # m
+FURNITURE_SCALE = 0.05  # m of jitter around the home position
+LIGHT_SCALE = 2.5  # m
+AMBIENT_CENTRE, AMBIENT_SCALE = 0.15, 0.15
+TINT_SCALE = 0.2
+INTENSITY_CENTRE, INTENSITY_SCALE = 0.6, 0.6
+LIGHT_WIDTH = 9
+
+
+def _onehot(index: int, n: int) -> np.ndarray:
+    v = -np.ones(n)
+    v[index] = 1.0
+    return v
+
+
+def _yaw_of(quat: Sequence[float], rest: Sequence[float]) -> float:
+    """Yaw (rad) of the world z rotation that best carries resting pose ``rest`` onto ``quat``."""
+    rel = quat_mul(np.asarray(quat, float), np.asarray(rest, float) * np.array([1, -1, -1, -1]))
+    return 2.0 * math.atan2(rel[3], rel[0])
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """A decoded scene: the proposal, and the projection distance (m) of each object."""
+
+    proposal: SceneProposal
+    projection: tuple[float, ...]
+
+
+class SceneEncoding:
+    """The map between layouts and (object tokens (SLOTS, object_width), scene token (scene_width))."""
+
+    def __init__(self, catalog: Catalog, slots: int = SLOTS, light_slots: int = LIGHT_SLOTS):
+        self.catalog = catalog
+        self.slots = slots
+        self.light_slots = light_slots
+        self.assets = tuple(a.name for a in catalog.assets)
+        self.max_poses = max(len(a.resting_poses) for a in catalog.assets)
+        n_assets = len(self.assets)
+        # Column offsets of an object token.
+        self.asset_cols = slice(1, 1 + n_assets)
+        self.pose_cols = slice(self.asset_cols.stop, self.asset_cols.stop + self.max_poses)
+        self.support_cols = slice(self.pose_cols.stop, self.pose_cols.stop + len(SUPPORTS))
+        self.xyz_cols = slice(self.support_cols.stop, self.support_cols.stop + 3)
+        self.yaw_cols = slice(self.xyz_cols.stop, self.xyz_cols.stop + 2)
+        self.target_col = self.yaw_cols.stop
+        self.object_width = self.target_col + 1
+        self.scene_width = 3 * len(FURNITURE_KINDS) + 1 + LIGHT_WIDTH * light_slots
+
+    # ------------------------------------------------------------------------------ encode
+
+    def encode_row(self, row: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Tokens of one layout in the shape of a reference Parquet row (``reference.layout_row``)."""
+        objects = row["objects"]
+        if len(objects) > self.slots:
+            raise ValueError(
+                f"layout {row.get('index')}: {len(objects)} objects, more than {self.slots} slots"
+            )
+        tokens = -np.ones((self.slots, self.object_width))
+        names = [o["name"] for o in objects]
+        for slot, o in enumerate(objects):
+            asset = self.catalog.get(o["asset"])
+            surface_kind = o["support"] if o["support"] not in names else "stacked"
+            table = world.support_surfaces(())["table"]
+            pose = snap_to_rest(asset, o["position"], o["quat"], table)[2]
+            yaw = _yaw_of(o["quat"], asset.resting_poses[pose].quat)
+            token = tokens[slot]
+            token[0] = 1.0
+            token[self.asset_cols] = _onehot(self.assets.index(asset.name), len(self.assets))
+            token[self.pose_cols] = _onehot(pose, self.max_poses)
+            token[self.support_cols] = _onehot(SUPPORTS.index(surface_kind), len(SUPPORTS))
+            x, y, z = o["position"]
+            token[self.xyz_cols] = (x / XY_SCALE, y / XY_SCALE, (z - world.TABLE_TOP_Z) / XY_SCALE)
+            token[self.yaw_cols] = (math.cos(yaw), math.sin(yaw))
+            token[self.target_col] = 1.0 if o["name"] == row["target"] else -1.0
+        return tokens, self._scene_token(row)
+
+    def _scene_token(self, row: dict) -> np.ndarray:
+        out = []
+        present = {f["kind"]: f for f in row["furniture"]}
+        for kind in FURNITURE_KINDS:
+            f = present.get(kind)
+            if f is None:
+                out += [-1.0, 0.0, 0.0]
+            else:
+                home = FURNITURE_HOME[kind]
+                out += [1.0, (f["x"] - home[0]) / FURNITURE_SCALE, (f["y"] - home[1]) / FURNITURE_SCALE]
+        out.append((row["ambient"] - AMBIENT_CENTRE) / AMBIENT_SCALE)
+        lights = row["lights"][: self.light_slots]
+        for i in range(self.light_slots):
+            if i >= len(lights):
+                out += [-1.0] + [0.0] * (LIGHT_WIDTH - 1)
+                continue
+            light = lights[i]
+            pos = np.asarray(light["position"], float)
+            direction = np.asarray(light["direction"], float)
+            # Where the spot's axis meets the table top: the aim point.
+            t = (world.TABLE_TOP_Z - pos[2]) / direction[2] if direction[2] < -1e-6 else 0.0
+            aim = pos + t * direction
+            colour = light["colour"]
+            out += [
+                1.0,
+                pos[0] / LIGHT_SCALE,
+                pos[1] / LIGHT_SCALE,
+                (pos[2] - world.TABLE_TOP_Z) / LIGHT_SCALE,
+                aim[0] / XY_SCALE,
+                aim[1] / XY_SCALE,
+                (colour[0] - colour[2]) / TINT_SCALE,  # colour = clip([1 + tint, 1, 1 - tint], 0, 1)
+                (light["intensity"] - INTENSITY_CENTRE) / INTENSITY_SCALE,
+                1.0 if light["cast_shadow"] else -1.0,
+            ]
+        return np.asarray(out, float)
+
+    # ------------------------------------------------------------------------------ decode
+
+    def decode(
+        self,
+        tokens: np.ndarray,
+        scene: np.ndarray,
+        condition: Condition,
+        cameras: Sequence[Camera],
+        index: int = 0,
+        seed: int = 0,
+    ) -> Decoded:
+        """A proposal from (possibly noisy) tokens: discrete fields by argmax, objects snapped onto a
+        resting pose at their support's height. Raises ValueError when no slot is present."""
+        tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
+        furniture = self._furniture(scene)
+        surfaces = world.support_surfaces(furniture)
+        present = [s for s in range(self.slots) if tokens[s, 0] > 0]
+        if not present:
+            raise ValueError("decoded scene has no object (every slot's presence <= 0)")
+        support_of = {s: SUPPORTS[int(np.argmax(tokens[s, self.support_cols]))] for s in present}
+        for s, kind in support_of.items():
+            if kind in FURNITURE_KINDS and kind not in surfaces:
+                support_of[s] = "table"  # furniture that is absent cannot hold anything
+        order = sorted(present, key=lambda s: (support_of[s] == "stacked", s))
+        placed: dict[int, ObjectPlacement] = {}
+        projection: dict[int, float] = {}
+        for s in order:
+            token = tokens[s]
+            asset = self.catalog.get(self.assets[int(np.argmax(token[self.asset_cols]))])
+            pose = min(int(np.argmax(token[self.pose_cols])), len(asset.resting_poses) - 1)
+            xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, world.TABLE_TOP_Z]
+            xy = xyz[:2]
+            yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])
+            support = support_of[s]
+            surface = surfaces.get(support, surfaces["table"])
+            if support == "stacked":
+                base = self._base_under(xy, placed.values())
+                support, surface = (
+                    (base.name, world.object_top_surface(self.catalog, base))
+                    if base
+                    else (
+                        "table",
+                        surfaces["table"],
+                    )
+                )
+            quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
+            position, quat, pose, distance = snap_to_rest(asset, xyz, quat, surface)
+            placed[s] = ObjectPlacement(
+                name=f"obj{s}_{asset.name}",
+                asset=asset.name,
+                category=asset.category,
+                position=position,
+                quat=quat,
+                support=support,
+                resting_pose=pose,
+                projection_distance=distance,
+            )
+            projection[s] = distance
+        target = max(present, key=lambda s: tokens[s, self.target_col])
+        proposal = SceneProposal(
+            index=index,
+            seed=seed,
+            condition=condition,
+            target=placed[target].name,
+            objects=tuple(placed[s] for s in sorted(placed)),
+            furniture=furniture,
+            lighting=self._lighting(scene),
+            cameras=tuple(cameras),
+        )
+        return Decoded(proposal, tuple(projection[s] for s in sorted(placed)))
+
+    def _base_under(self, xy: np.ndarray, placed) -> ObjectPlacement | None:
+        """The placed object whose top is nearest (xy) to ``xy`` among those whose top holds it."""
+        best, best_d = None, math.inf
+        for o in placed:
+            top = world.object_top_surface(self.catalog, o)
+            if top.margin(xy) < -0.02:
+                continue
+            d = float(np.hypot(*(np.asarray(top.center) - xy)))
+            if d < best_d:
+                best, best_d = o, d
+        return best
+
+    def _furniture(self, scene: np.ndarray) -> tuple[FurniturePlacement, ...]:
+        out = []
+        for i, kind in enumerate(FURNITURE_KINDS):
+            present, dx, dy = scene[3 * i : 3 * i + 3]
+            if present > 0:
+                home = FURNITURE_HOME[kind]
+                position = (
+                    round(home[0] + float(dx) * FURNITURE_SCALE, 6),
+                    round(home[1] + float(dy) * FURNITURE_SCALE, 6),
+                    0.0,
+                )
+                out.append(FurniturePlacement(name=kind, kind=kind, position=position))
+        return tuple(out)
+
+    def _lighting(self, scene: np.ndarray) -> Lighting:
+        base = 3 * len(FURNITURE_KINDS)
+        ambient = round(float(np.clip(scene[base] * AMBIENT_SCALE + AMBIENT_CENTRE, 0.0, 1.0)), 6)
+        lights = []
+        for i in range(self.light_slots):
+            v = scene[base + 1 + LIGHT_WIDTH * i : base + 1 + LIGHT_WIDTH * (i + 1)]
+            if v[0] <= 0:
+                continue
+            pos = np.array([v[1] * LIGHT_SCALE, v[2] * LIGHT_SCALE, world.TABLE_TOP_Z + v[3] * LIGHT_SCALE])
+            aim = np.array([v[4] * XY_SCALE, v[5] * XY_SCALE, world.TABLE_TOP_Z])
+            direction = aim - pos
+            norm = np.linalg.norm(direction)
+            direction = direction / norm if norm > 1e-9 else np.array([0.0, 0.0, -1.0])
+            tint = float(v[6]) * TINT_SCALE
+            lights.append(
+                Light(
+                    position=tuple(round(float(x), 6) for x in pos),
+                    direction=tuple(round(float(x), 6) for x in direction),
+                    colour=tuple(round(float(x), 6) for x in np.clip([1 + tint, 1.0, 1 - tint], 0.0, 1.0)),
+                    intensity=round(float(np.clip(v[7] * INTENSITY_SCALE + INTENSITY_CENTRE, 0.0, 3.0)), 6),
+                    cast_shadow=bool(v[8] > 0),
+                )
+            )
+        return Lighting(lights=tuple(lights), ambient=(ambient, ambient, ambient))

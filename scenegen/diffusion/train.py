@@ -1,0 +1,254 @@
+"""Training the denoiser: DDPM (v prediction) on reference layouts, EMA weights, resumable checkpoints.
+
+A checkpoint directory holds:
+
+    model.safetensors        EMA weights (what sampling uses)
+    config.json              denoiser sizes, encoding, training settings, the training data's sha256,
+                             the predicate version, the step reached and the loss curve
+    train_state.safetensors  raw weights, optimizer moments and the random state (to resume)
+    loss.png                 the loss curve
+
+Everything is read back with safetensors and json (no pickle). Training is deterministic for a seed
+on one machine, and a resumed run continues exactly where the killed one stopped (at the last
+checkpoint).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from scenegen.assets.catalog import load_catalog
+from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
+from scenegen.diffusion.encoding import SceneEncoding
+from scenegen.diffusion.model import Denoiser, DenoiserConfig
+from scenegen.schema.condition import RARE_TAGS
+from scenegen.tags import PREDICATE_VERSION
+
+CHECKPOINT_FORMAT = 1
+
+
+class TrainSettings(BaseModel):
+    """Settings of ``scenegen train`` (stored in the checkpoint's config.json)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    steps: int = Field(6000, ge=1)
+    batch_size: int = Field(128, ge=2)
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(1e-4, ge=0)
+    ema_decay: float = Field(0.999, ge=0, lt=1)
+    rare_share: float = Field(0.25, ge=0, le=1)  # share of each batch drawn by rare oversampling
+    p_null: float = Field(0.1, ge=0, le=1)
+    p_field: float = Field(0.1, ge=0, le=1)
+    p_unspecified: float = Field(0.5, ge=0, le=1)
+    train_timesteps: int = Field(1000, ge=10)
+    beta_schedule: str = "squaredcos_cap_v2"
+    d_model: int = Field(128, ge=8)
+    layers: int = Field(4, ge=1)
+    heads: int = Field(4, ge=1)
+    seed: int = 0
+    checkpoint_every: int = Field(500, ge=1)
+    split: str = "train"  # which rows of the dataset to train on (train, heldout, all)
+
+
+def ddpm_scheduler(settings: TrainSettings):
+    """The training noise schedule (diffusers, pinned): DDPM, v prediction, no sample clipping."""
+    from diffusers import DDPMScheduler
+
+    return DDPMScheduler(
+        num_train_timesteps=settings.train_timesteps,
+        beta_schedule=settings.beta_schedule,
+        clip_sample=False,
+        prediction_type="v_prediction",
+    )
+
+
+def file_sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def load_rows(path: Path, split: str) -> list[dict]:
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(path).to_pylist()
+    return rows if split == "all" else [r for r in rows if r["split"] == split]
+
+
+def _flat_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
+    state = optimizer.state_dict()
+    tensors, meta = {}, {"param_groups": state["param_groups"], "keys": {}}
+    for index, entry in state["state"].items():
+        meta["keys"][str(index)] = sorted(entry)
+        for key, value in entry.items():
+            tensors[f"optim.{index}.{key}"] = torch.as_tensor(value).clone()
+    return tensors, meta
+
+
+def _unflat_optimizer(tensors: dict[str, torch.Tensor], meta: dict) -> dict:
+    state = {
+        int(index): {key: tensors[f"optim.{index}.{key}"] for key in keys}
+        for index, keys in meta["keys"].items()
+    }
+    return {"state": state, "param_groups": meta["param_groups"]}
+
+
+def _atomic(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def save_checkpoint(out: Path, model, ema, optimizer, generator, config: dict) -> None:
+    """Write the checkpoint files atomically (each renamed into place; config.json last)."""
+    from safetensors.torch import save_file
+
+    out.mkdir(parents=True, exist_ok=True)
+    opt_tensors, opt_meta = _flat_optimizer(optimizer)
+    state = {f"model.{k}": v.contiguous() for k, v in model.state_dict().items()}
+    state.update(opt_tensors)
+    state["rng"] = generator.get_state()
+    _atomic(out / "train_state.safetensors", lambda p: save_file(state, str(p)))
+    _atomic(
+        out / "model.safetensors",
+        lambda p: save_file({k: v.contiguous() for k, v in ema.state_dict().items()}, str(p)),
+    )
+    _atomic(out / "loss.png", lambda p: p.write_bytes(loss_curve_png(config["losses"])))
+    config = {**config, "optimizer": opt_meta}
+    _atomic(out / "config.json", lambda p: p.write_text(json.dumps(config, indent=1) + "\n"))
+
+
+def loss_curve_png(losses: list[float], size: tuple[int, int] = (640, 360)) -> bytes:
+    """A plain loss curve (log scale, moving average over 50 steps) as PNG bytes."""
+    import cv2
+
+    w, h = size
+    image = np.full((h, w, 3), 255, np.uint8)
+    values = np.asarray(losses, float)
+    if len(values) >= 2:
+        k = min(50, len(values))
+        smooth = np.convolve(values, np.ones(k) / k, mode="valid")
+        logs = np.log10(np.clip(smooth, 1e-6, None))
+        lo, hi = logs.min(), max(logs.max(), logs.min() + 1e-3)
+        xs = 50 + (w - 70) * np.arange(len(logs)) / max(len(logs) - 1, 1)
+        ys = h - 40 - (h - 70) * (logs - lo) / (hi - lo)
+        cv2.polylines(image, [np.stack([xs, ys], 1).astype(np.int32)], False, (180, 60, 20), 2, cv2.LINE_AA)
+        for value, y in ((10**hi, 30), (10**lo, h - 40)):
+            cv2.putText(image, f"{value:.3g}", (2, y + 4), 0, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.rectangle(image, (50, 30), (w - 20, h - 40), (0, 0, 0), 1)
+    cv2.putText(image, f"training loss (moving average), {len(values)} steps", (60, 20), 0, 0.5, (0, 0, 0), 1)
+    ok, png = cv2.imencode(".png", image)
+    return png.tobytes()
+
+
+def train(
+    data_path: Path, out: Path, settings: TrainSettings, progress: bool = True, stop_after: int | None = None
+) -> dict:
+    """Train (or resume training) a denoiser on the layouts of ``data_path`` into checkpoint dir ``out``.
+
+    ``stop_after``: return after this many steps of this call (tests use it to interrupt a run)."""
+    from safetensors.torch import load_file
+    from tqdm import tqdm
+
+    torch.manual_seed(settings.seed)
+    catalog = load_catalog()
+    encoding = SceneEncoding(catalog)
+    data = layout_tensors(load_rows(data_path, settings.split), encoding)
+    denoiser_config = DenoiserConfig(
+        object_width=encoding.object_width,
+        scene_width=encoding.scene_width,
+        slots=encoding.slots,
+        n_tasks=len(tasks()),
+        n_targets=len(catalog.categories),
+        n_tags=len(RARE_TAGS),
+        d_model=settings.d_model,
+        layers=settings.layers,
+        heads=settings.heads,
+    )
+    model = Denoiser(denoiser_config)
+    ema = copy.deepcopy(model).requires_grad_(False)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    generator = torch.Generator().manual_seed(settings.seed)
+    config = {
+        "format": CHECKPOINT_FORMAT,
+        "denoiser": denoiser_config.model_dump(),
+        "encoding": {
+            "slots": encoding.slots,
+            "assets": list(encoding.assets),
+            "categories": list(catalog.categories),
+        },
+        "tasks": list(tasks()),
+        "tags": list(RARE_TAGS),
+        "train": settings.model_dump(),
+        "data": {"path": str(data_path), "sha256": file_sha256(data_path), "rows": len(data)},
+        "predicate_version": PREDICATE_VERSION,
+        "catalog_sha256": catalog.sha256,
+        "step": 0,
+        "losses": [],
+        "cpu_seconds": 0.0,
+    }
+    if (out / "config.json").is_file():
+        saved = json.loads((out / "config.json").read_text())
+        for key in ("denoiser", "train", "data", "predicate_version"):
+            if saved[key] != config[key]:
+                raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
+        state = load_file(str(out / "train_state.safetensors"))
+        model.load_state_dict({k[6:]: v for k, v in state.items() if k.startswith("model.")})
+        ema.load_state_dict(load_file(str(out / "model.safetensors")))
+        optimizer.load_state_dict(_unflat_optimizer(state, saved["optimizer"]))
+        generator.set_state(state["rng"])
+        config.update(step=saved["step"], losses=saved["losses"], cpu_seconds=saved["cpu_seconds"])
+
+    scheduler = ddpm_scheduler(settings)
+    alphas = scheduler.alphas_cumprod
+    start, cpu0 = config["step"], time.process_time()
+    end = settings.steps if stop_after is None else min(settings.steps, start + stop_after)
+    bar = tqdm(range(start, end), initial=start, total=settings.steps, desc="train", disable=not progress)
+    model.train()
+    for step in bar:
+        rows, rare = batch_indices(data, settings.batch_size, settings.rare_share, generator)
+        c = training_conditions(
+            data,
+            rows,
+            rare,
+            denoiser_config.n_tasks,
+            denoiser_config.n_targets,
+            generator,
+            settings.p_null,
+            settings.p_field,
+            settings.p_unspecified,
+        )
+        x_o, x_s = data.objects[rows], data.scene[rows]
+        noise_o = torch.randn(x_o.shape, generator=generator)
+        noise_s = torch.randn(x_s.shape, generator=generator)
+        t = torch.randint(0, settings.train_timesteps, (len(rows),), generator=generator)
+        a = alphas[t]
+        xt_o = a.sqrt()[:, None, None] * x_o + (1 - a).sqrt()[:, None, None] * noise_o
+        xt_s = a.sqrt()[:, None] * x_s + (1 - a).sqrt()[:, None] * noise_s
+        v_o, v_s = model(xt_o, xt_s, t, c)  # v target: sqrt(a) noise - sqrt(1 - a) x_0
+        target_o = a.sqrt()[:, None, None] * noise_o - (1 - a).sqrt()[:, None, None] * x_o
+        target_s = a.sqrt()[:, None] * noise_s - (1 - a).sqrt()[:, None] * x_s
+        loss = torch.cat([(v_o - target_o).flatten(1), (v_s - target_s)], dim=1).pow(2).mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        with torch.no_grad():
+            for p_ema, p in zip(ema.parameters(), model.parameters(), strict=True):
+                p_ema.lerp_(p, 1 - settings.ema_decay)
+        config["losses"].append(round(loss.item(), 6))
+        config["step"] = step + 1
+        bar.set_postfix_str(f"loss={np.mean(config['losses'][-50:]):.4f}", refresh=False)
+        if config["step"] % settings.checkpoint_every == 0 or config["step"] == end:
+            config["cpu_seconds"] = round(config["cpu_seconds"] + time.process_time() - cpu0, 2)
+            cpu0 = time.process_time()
+            save_checkpoint(out, model, ema, optimizer, generator, config)
+    bar.close()
+    return config
