@@ -75,9 +75,14 @@ class PipelineConfig(BaseModel):
         return hashlib.sha256(blob).hexdigest()
 
 
-def _fields_at(model: type[BaseModel], loc: tuple) -> list[str]:
-    """Field names of the (nested) model at ``loc`` of a recipe."""
+def _fields_at(loc: tuple, proposer: type[BaseModel]) -> list[str]:
+    """Field names of the (nested) model at ``loc`` of a recipe; ``proposer``: the settings model of
+    the recipe's proposer kind."""
+    model: type[BaseModel] = PipelineConfig
     for part in loc:
+        if model is PipelineConfig and part == "proposer":
+            model = proposer
+            continue
         field = model.model_fields.get(part) if isinstance(part, str) else None
         annotation = getattr(field, "annotation", None)
         if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
@@ -88,11 +93,19 @@ def _fields_at(model: type[BaseModel], loc: tuple) -> list[str]:
 
 def _format_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
-    where = ".".join(str(p) for p in err["loc"])
+    loc = list(err["loc"])
+    proposer: type[BaseModel] = ProceduralSettings
+    if len(loc) >= 2 and loc[0] == "proposer" and loc[1] in PROPOSER_SETTINGS:
+        proposer = PROPOSER_SETTINGS[loc.pop(1)]  # pydantic names the union member: drop it
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden":
-        valid = ", ".join(_fields_at(PipelineConfig, err["loc"][:-1]))
+        valid = ", ".join(_fields_at(tuple(loc[:-1]), proposer))
         msg = f"unknown key; valid keys here: {valid} (docs/pipelines.md)"
+    elif err["type"] in ("union_tag_invalid", "union_tag_not_found"):
+        loc.append("kind")
+        kind = err.get("ctx", {}).get("tag")
+        msg = f"unknown proposer kind {kind!r}; valid: {', '.join(PROPOSER_SETTINGS)}"
+    where = ".".join(str(p) for p in loc)
     more = f" (+{len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
     return f"{path}: {where + ': ' if where else ''}{msg}{more}"
 

@@ -112,6 +112,18 @@ BAD_RECIPES: dict[str, tuple[Mutation, Callable[[], list[str]]]] = {
         _set("proposer", "n_objects", value=[5, 2]),
         lambda: ["proposer.n_objects", "[5, 2]"],
     ),
+    "unknown_key_of_targeted_proposer": (
+        lambda recipe: recipe["proposer"].update(kind="targeted", reach=2),
+        lambda: ["proposer.reach", "n_objects", "edge_distance", "occluders", "dim_lighting"],
+    ),
+    "unknown_occluder_asset": (
+        lambda recipe: recipe["proposer"].update(kind="targeted", occluders=["wall"]),
+        lambda: ["proposer.occluders", "'wall'", "cereal_box"],
+    ),
+    "impossible_request": (
+        _set("condition", "text", value="retrieve the spoon toppled"),
+        lambda: ["condition", "toppled", "spoon", "request another target"],
+    ),
     "zero_n": (_set("n", value=0), lambda: ["n: ", "greater than or equal to 1"]),
     "negative_seed": (_set("seed", value=-1), lambda: ["seed", "greater than or equal to 0"]),
     "unknown_support": (

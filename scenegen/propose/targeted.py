@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from scenegen import world
 from scenegen.assets.catalog import Asset, Catalog
@@ -77,6 +77,19 @@ class TargetedSettings(ProceduralSettings):
     dim_lighting: LightingSettings = LightingSettings(
         n_lights=(1, 2), intensity=(0.03, 0.12), ambient=(0.02, 0.08)
     )
+
+    @field_validator("occluders", "stack_bases")
+    @classmethod
+    def _known_assets(cls, names: tuple[str, ...]) -> tuple[str, ...]:
+        from scenegen.assets.catalog import load_catalog
+
+        valid = [a.name for a in load_catalog().assets]
+        for name in names:
+            if name not in valid:
+                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(valid)}")
+        if not names:
+            raise ValueError("needs at least one asset")
+        return names
 
 
 class _Scene:
