@@ -30,7 +30,7 @@ import numpy as np
 
 from scenegen import world
 from scenegen.assets.catalog import Catalog
-from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
+from scenegen.propose.base import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import FURNITURE_HOME
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
@@ -205,18 +205,8 @@ class SceneEncoding:
                     )
                 )
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
-            position, quat, pose, distance = snap_to_rest(asset, xyz, quat, surface)
-            placed[s] = ObjectPlacement(
-                name=f"obj{s}_{asset.name}",
-                asset=asset.name,
-                category=asset.category,
-                position=position,
-                quat=quat,
-                support=support,
-                resting_pose=pose,
-                projection_distance=distance,
-            )
-            projection[s] = distance
+            placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
+            projection[s] = placed[s].projection_distance
         target = max(present, key=lambda s: tokens[s, self.target_col])
         proposal = SceneProposal(
             index=index,

@@ -15,7 +15,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Asset
 from scenegen.schema.condition import Condition
-from scenegen.schema.scene import SceneProposal
+from scenegen.schema.scene import ObjectPlacement, SceneProposal
 from scenegen.world import Surface
 
 
@@ -112,4 +112,22 @@ def snap_to_rest(
         tuple(round(float(v), 7) for v in snapped),
         index,
         round(distance, 7),
+    )
+
+
+def placed_at_rest(
+    name: str, asset: Asset, position: Sequence[float], quat: Sequence[float], surface: Surface, support: str
+) -> ObjectPlacement:
+    """An object of ``asset`` snapped (:func:`snap_to_rest`) from a raw pose onto ``surface``, resting on
+    ``support``, with the projection distance recorded."""
+    position, quat, pose, distance = snap_to_rest(asset, position, quat, surface)
+    return ObjectPlacement(
+        name=name,
+        asset=asset.name,
+        category=asset.category,
+        position=position,
+        quat=quat,
+        support=support,
+        resting_pose=pose,
+        projection_distance=distance,
     )

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from scenegen import world
 from scenegen.assets.catalog import Asset, Catalog
-from scenegen.propose.base import proposal_rng, register_proposer, snap_to_rest, yaw_quat
+from scenegen.propose.base import placed_at_rest, proposal_rng, register_proposer, yaw_quat
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,
@@ -278,19 +278,9 @@ class ProceduralProposer:
             yaw = rng.uniform(-math.pi, math.pi)
             raw_quat = _quat_mul_yaw(yaw, asset.resting_poses[pose].quat)
             raw_position = (*xy, surface.z + asset.resting_poses[pose].height)
-            position, quat, pose_index, distance = snap_to_rest(asset, raw_position, raw_quat, surface)
             footprints.append((support, xy, radius))
             placed.append(
-                ObjectPlacement(
-                    name=f"obj{slot}_{asset.name}",
-                    asset=asset.name,
-                    category=asset.category,
-                    position=position,
-                    quat=quat,
-                    support=support,
-                    resting_pose=pose_index,
-                    projection_distance=distance,
-                )
+                placed_at_rest(f"obj{slot}_{asset.name}", asset, raw_position, raw_quat, surface, support)
             )
         return SceneProposal(
             index=index,

@@ -31,7 +31,7 @@ from pydantic import Field, field_validator
 from scenegen import world
 from scenegen.assets.catalog import Asset, Catalog
 from scenegen.check.geometry import quat_to_matrix
-from scenegen.propose.base import non_upright, quat_mul, register_proposer, snap_to_rest, yaw_quat
+from scenegen.propose.base import non_upright, placed_at_rest, quat_mul, register_proposer, yaw_quat
 from scenegen.propose.procedural import (
     FURNITURE_HOME,
     LightingSettings,
@@ -318,17 +318,7 @@ class TargetedProposer:
 
     def _make(self, name, asset, pose, xy, quat, surface, support) -> ObjectPlacement:
         raw = (float(xy[0]), float(xy[1]), surface.z + asset.resting_poses[pose].height)
-        position, quat, pose, distance = snap_to_rest(asset, raw, quat, surface)
-        return ObjectPlacement(
-            name=name,
-            asset=asset.name,
-            category=asset.category,
-            position=position,
-            quat=quat,
-            support=support,
-            resting_pose=pose,
-            projection_distance=distance,
-        )
+        return placed_at_rest(name, asset, raw, quat, surface, support)
 
     def _make_way(self, scene: _Scene) -> None:
         """Drop unprotected objects whose footprint overlaps a protected (placed by a rule) one at about
