@@ -82,6 +82,24 @@ def _parser() -> argparse.ArgumentParser:
         help="also register the table in this project manifest (origin reference), e.g. data_manifest.yaml",
     )
 
+    tr = sub.add_parser(
+        "train",
+        help="train the diffusion generator on a reference/real Parquet table (resumable)",
+        description="Train the conditional diffusion denoiser (DDPM, v prediction, EMA) on the layouts of a "
+        "Parquet table. OUT holds model.safetensors (EMA weights), config.json (settings, data sha256, "
+        "predicate version, loss curve), train_state.safetensors and loss.png; the same command on a "
+        "killed run resumes it from its last checkpoint.",
+    )
+    tr.add_argument("--data", type=Path, default=Path("assets/reference/reference.parquet"))
+    tr.add_argument("--out", type=Path, default=Path("runs/checkpoint"), help="checkpoint directory")
+    tr.add_argument("--steps", type=int, help="optimizer steps (default 6000)")
+    tr.add_argument("--batch-size", type=int, help="layouts per step (default 128)")
+    tr.add_argument("--d-model", type=int, help="transformer width (default 128)")
+    tr.add_argument("--layers", type=int, help="transformer layers (default 4)")
+    tr.add_argument("--seed", type=int, help="seed (default 0)")
+    tr.add_argument("--split", choices=("train", "heldout", "all"), help="rows to train on (default train)")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+
     from scenegen import coverage  # numpy only: cheap to import for --help
 
     cov = sub.add_parser(
@@ -192,6 +210,39 @@ def _reference(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from scenegen.diffusion.train import TrainSettings, train
+
+    overrides = {
+        "steps": args.steps,
+        "batch_size": args.batch_size,
+        "d_model": args.d_model,
+        "layers": args.layers,
+        "seed": args.seed,
+        "split": args.split,
+    }
+    try:
+        settings = TrainSettings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        return _fail(f"--{str(err['loc'][0]).replace('_', '-')}: {err['msg']}")
+    if not args.data.is_file():
+        return _fail(
+            f"--data {args.data}: no such Parquet file (the bundled one: assets/reference/reference.parquet)"
+        )
+    try:
+        config = train(args.data, args.out, settings, progress=not args.quiet)
+    except ValueError as exc:
+        return _fail(str(exc))
+    print(
+        f"{config['step']} steps, loss {sum(config['losses'][-50:]) / len(config['losses'][-50:]):.4f} "
+        f"(last 50), {config['cpu_seconds']:.1f} CPU-s -> {args.out}"
+    )
+    return 0
+
+
 def _show(args: argparse.Namespace) -> int:
     from scenegen.contact_sheet import SheetError, contact_sheet
 
@@ -237,7 +288,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
-    if args.command == "generate" and args.no_render and "mujoco" not in sys.modules:
+    no_gl = args.command == "train" or (args.command == "generate" and args.no_render)
+    if no_gl and "mujoco" not in sys.modules:
         os.environ["MUJOCO_GL"] = "disable"  # no GL is touched: a broken GL set-up cannot get in the way
     backend = os.environ.get("MUJOCO_GL", "egl").lower().strip()
     if backend not in _GL_BACKENDS:
@@ -258,6 +310,8 @@ def main(argv: list[str] | None = None) -> int:
         return _show(args)
     if args.command == "reference":
         return _reference(args)
+    if args.command == "train":
+        return _train(args)
     if args.command == "coverage":
         from scenegen import coverage
 

@@ -59,3 +59,19 @@ def test_resumed_training_equals_uninterrupted(trained: Path, tmp_path: Path):
 def test_other_settings_do_not_resume_a_checkpoint(trained: Path):
     with pytest.raises(ValueError, match="another train"):
         train(REFERENCE, trained, TINY.model_copy(update={"lr": 0.5}), progress=False)
+
+
+def test_train_command(tmp_path: Path, capsys: pytest.CaptureFixture):
+    from scenegen.cli import main
+
+    out = tmp_path / "cli"
+    args = ["train", "--data", str(REFERENCE), "--out", str(out), "--steps", "10", "--d-model", "16"]
+    assert main([*args, "--layers", "1", "--split", "heldout", "--quiet"]) == 0
+    assert {"model.safetensors", "config.json", "train_state.safetensors", "loss.png"} <= {
+        p.name for p in out.iterdir()
+    }
+    assert "10 steps" in capsys.readouterr().out
+    assert main(["train", "--steps", "0", "--out", str(tmp_path / "never")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("scenegen: error: --steps:")
+    assert not (tmp_path / "never").exists()
