@@ -16,15 +16,17 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from scenegen.check.geometry import CheckSettings
 from scenegen.propose.base import impossible_request
+from scenegen.propose.diffusion import DiffusionSettings
 from scenegen.propose.procedural import ProceduralSettings
 from scenegen.propose.targeted import TargetedSettings
 from scenegen.schema.condition import Condition, parse_request
 from scenegen.settle import SettleSettings
 from scenegen.tags import TagSettings
 
-PROPOSER_SETTINGS: dict[str, type[ProceduralSettings]] = {
+PROPOSER_SETTINGS: dict[str, type[BaseModel]] = {
     "procedural": ProceduralSettings,
     "targeted": TargetedSettings,
+    "diffusion": DiffusionSettings,
 }
 
 
@@ -48,9 +50,9 @@ class PipelineConfig(BaseModel):
     seed: int = Field(0, ge=0, lt=2**63)
     max_proposals: int | None = Field(None, ge=1)
     condition: Condition = Condition()
-    proposer: Annotated[ProceduralSettings | TargetedSettings, Field(discriminator="kind")] = (
-        ProceduralSettings()
-    )
+    proposer: Annotated[
+        ProceduralSettings | TargetedSettings | DiffusionSettings, Field(discriminator="kind")
+    ] = ProceduralSettings()
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
     tags: TagSettings = TagSettings()

@@ -101,7 +101,7 @@ BAD_RECIPES: dict[str, tuple[Mutation, Callable[[], list[str]]]] = {
         lambda: ["condition", "text", "'please'", "retrieve", "spoon", "near_edge", "home"],
     ),
     "unknown_proposer_kind": (
-        _set("proposer", "kind", value="diffusion"),
+        _set("proposer", "kind", value="magic"),
         lambda: ["proposer.kind", "procedural"],
     ),
     "unknown_asset_category": (

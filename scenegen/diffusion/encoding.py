@@ -171,7 +171,8 @@ class SceneEncoding:
         seed: int = 0,
     ) -> Decoded:
         """A proposal from (possibly noisy) tokens: discrete fields by argmax, objects snapped onto a
-        resting pose at their support's height. Raises ValueError when no slot is present."""
+        resting pose at their support's height, the target an object of ``condition.target``'s
+        category (see :meth:`_target`). Raises ValueError when no slot is present."""
         tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
         furniture = self._furniture(scene)
         surfaces = world.support_surfaces(furniture)
@@ -183,11 +184,12 @@ class SceneEncoding:
             if kind in FURNITURE_KINDS and kind not in surfaces:
                 support_of[s] = "table"  # furniture that is absent cannot hold anything
         order = sorted(present, key=lambda s: (support_of[s] == "stacked", s))
+        target, asset_of = self._target(tokens, present, condition.target)
         placed: dict[int, ObjectPlacement] = {}
         projection: dict[int, float] = {}
         for s in order:
             token = tokens[s]
-            asset = self.catalog.get(self.assets[int(np.argmax(token[self.asset_cols]))])
+            asset = self.catalog.get(asset_of[s])
             pose = min(int(np.argmax(token[self.pose_cols])), len(asset.resting_poses) - 1)
             xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, world.TABLE_TOP_Z]
             xy = xyz[:2]
@@ -207,7 +209,6 @@ class SceneEncoding:
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
             placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
             projection[s] = placed[s].projection_distance
-        target = max(present, key=lambda s: tokens[s, self.target_col])
         proposal = SceneProposal(
             index=index,
             seed=seed,
@@ -219,6 +220,19 @@ class SceneEncoding:
             cameras=tuple(cameras),
         )
         return Decoded(proposal, tuple(projection[s] for s in sorted(placed)))
+
+    def _target(self, tokens: np.ndarray, present: list[int], category: str) -> tuple[int, dict[int, str]]:
+        """The target slot and every present slot's asset (argmax). The target is the slot with the
+        highest target flag among those holding an asset of the requested category; if none does, the
+        highest-flag slot becomes the best-scoring asset of that category."""
+        asset_of = {s: self.assets[int(np.argmax(tokens[s, self.asset_cols]))] for s in present}
+        in_category = [s for s in present if self.catalog.get(asset_of[s]).category == category]
+        target = max(in_category or present, key=lambda s: tokens[s, self.target_col])
+        if not in_category:
+            allowed = [i for i, name in enumerate(self.assets) if self.catalog.get(name).category == category]
+            scores = tokens[target, self.asset_cols]
+            asset_of[target] = self.assets[max(allowed, key=lambda i: scores[i])]
+        return target, asset_of
 
     def _base_under(self, xy: np.ndarray, placed) -> ObjectPlacement | None:
         """The placed object whose top is nearest (xy) to ``xy`` among those whose top holds it."""

@@ -96,3 +96,13 @@ def test_more_objects_than_slots_is_an_error(encoding, rows):
     row = dict(rows[0], objects=rows[0]["objects"] * (SLOTS + 1))
     with pytest.raises(ValueError, match="slots"):
         encoding.encode_row(row)
+
+
+def test_the_target_is_an_object_of_the_requested_category(encoding, rows):
+    row = next(r for r in rows if r["target_category"] == "mug")
+    tokens, scene = encoding.encode_row(row)
+    as_requested = encoding.decode(tokens, scene, Condition(target="mug"), DEFAULT_CAMERAS).proposal
+    assert as_requested.target == row["target"]
+    other = encoding.decode(tokens, scene, Condition(target="bottle"), DEFAULT_CAMERAS).proposal
+    target = next(o for o in other.objects if o.name == other.target)
+    assert target.category == "bottle"

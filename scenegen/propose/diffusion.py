@@ -1,0 +1,126 @@
+"""The diffusion proposer: scenes sampled from a trained denoiser (scenegen/diffusion/), decoded onto
+resting poses, behind the same interface as the procedural proposer.
+
+Proposal ``i`` of a batch with seed ``s`` draws its initial noise and camera jitter from
+``SeedSequence([s, i])`` alone and is sampled on its own (batch of one), so it does not depend on how
+a batch is chunked, resumed or spread over workers.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from scenegen.assets.catalog import Catalog
+from scenegen.paths import PROJECT_ROOT
+from scenegen.propose.base import proposal_rng, register_proposer
+from scenegen.propose.procedural import DEFAULT_CAMERAS, jitter_cameras
+from scenegen.schema.condition import RARE_TAGS, Condition
+from scenegen.schema.scene import Camera, SceneProposal
+
+
+class DiffusionSettings(BaseModel):
+    """Settings of the diffusion proposer (``proposer.kind: diffusion``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["diffusion"] = "diffusion"
+    checkpoint: str = "assets/generator"  # checkpoint directory (relative paths: to the project root)
+    guidance: float = Field(1.0, ge=0.0, le=20.0)  # w in eps~ = (1 + w) eps(c) - w eps(null)
+    steps: int = Field(20, ge=1, le=1000)  # DDIM sampling steps
+    cost_weight: float = Field(0.0, ge=0.0)  # cost-gradient guidance (scenegen/diffusion/cost.py)
+    unconditional: bool = False  # sample the null condition (the model's own distribution)
+    camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
+    cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
+
+    @field_validator("checkpoint")
+    @classmethod
+    def _exists(cls, checkpoint: str) -> str:
+        path = Path(checkpoint) if Path(checkpoint).is_absolute() else PROJECT_ROOT / checkpoint
+        if not (path / "model.safetensors").is_file() or not (path / "config.json").is_file():
+            raise ValueError(
+                f"{checkpoint}: no checkpoint there (model.safetensors + config.json); "
+                "train one with `scenegen train --out DIR`"
+            )
+        return checkpoint
+
+    def checkpoint_dir(self) -> Path:
+        path = Path(self.checkpoint)
+        return path if path.is_absolute() else PROJECT_ROOT / path
+
+
+@functools.lru_cache(maxsize=4)
+def _load(checkpoint: str):
+    from scenegen.diffusion.sample import load_denoiser
+
+    return load_denoiser(Path(checkpoint))
+
+
+@register_proposer("diffusion")
+class DiffusionProposer:
+    """Samples whole scenes from the denoiser for a condition."""
+
+    def __init__(self, settings: DiffusionSettings, catalog: Catalog):
+        from scenegen.diffusion.encoding import SceneEncoding
+
+        self.settings = settings
+        self.catalog = catalog
+        self.model, self.config = _load(str(settings.checkpoint_dir()))
+        self.encoding = SceneEncoding(catalog)
+        if self.config["encoding"]["assets"] != list(self.encoding.assets):
+            raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
+
+    def condition_batch(self, condition: Condition):
+        import torch
+
+        from scenegen.diffusion.model import TAG_STATES, ConditionBatch
+
+        c = ConditionBatch(
+            task=torch.tensor([self.config["tasks"].index(condition.task)]),
+            target=torch.tensor([self.config["encoding"]["categories"].index(condition.target)]),
+            tags=torch.tensor([[TAG_STATES[condition.tags.get(t, "unspecified")] for t in RARE_TAGS]]),
+            pose=torch.tensor([condition.robot_pose], dtype=torch.float32),
+            pose_null=torch.zeros(1, dtype=torch.bool),
+        )
+        return c.null_like(self.model.config) if self.settings.unconditional else c
+
+    def propose(self, condition: Condition, indices: Sequence[int], seed: int) -> list[SceneProposal]:
+        return [self._one(condition, i, seed) for i in indices]
+
+    def _one(self, condition: Condition, index: int, seed: int) -> SceneProposal:
+        import torch
+
+        from scenegen.diffusion.cost import SceneCost
+        from scenegen.diffusion.sample import sample
+
+        s = self.settings
+        rng = proposal_rng(seed, index)
+        generator = torch.Generator().manual_seed(int(rng.integers(2**63)))
+        cfg = self.model.config
+        noise_o = torch.randn(1, cfg.slots, cfg.object_width, generator=generator)
+        noise_s = torch.randn(1, cfg.scene_width, generator=generator)
+        cost = SceneCost(self.encoding, tuple(condition.required())) if s.cost_weight > 0 else None
+        objects, scene = sample(
+            self.model,
+            self.config["train"],
+            self.condition_batch(condition),
+            noise_o,
+            noise_s,
+            w=s.guidance,
+            steps=s.steps,
+            cost=cost,
+            cost_weight=s.cost_weight,
+        )
+        cameras = jitter_cameras(rng, s.cameras, s.camera_jitter)
+        objects, scene = objects[0].numpy().astype(np.float64), scene[0].numpy().astype(np.float64)
+        if not (objects[:, 0] > 0).any():
+            objects[int(np.argmax(objects[:, 0])), 0] = 1.0  # at least the most likely object
+        return self.encoding.decode(objects, scene, condition, cameras, index, seed).proposal
