@@ -16,7 +16,6 @@ checkpoint).
 from __future__ import annotations
 
 import copy
-import hashlib
 import json
 import os
 import time
@@ -30,7 +29,9 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
 from scenegen.diffusion.encoding import SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
+from scenegen.realism import load_rows
 from scenegen.schema.condition import RARE_TAGS
+from scenegen.store import sha256_file
 from scenegen.tags import PREDICATE_VERSION
 
 CHECKPOINT_FORMAT = 1
@@ -70,17 +71,6 @@ def ddpm_scheduler(settings: TrainSettings):
         clip_sample=False,
         prediction_type="v_prediction",
     )
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def load_rows(path: Path, split: str) -> list[dict]:
-    import pyarrow.parquet as pq
-
-    rows = pq.read_table(path).to_pylist()
-    return rows if split == "all" else [r for r in rows if r["split"] == split]
 
 
 def _flat_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict]:
@@ -161,7 +151,7 @@ def train(
     torch.manual_seed(settings.seed)
     catalog = load_catalog()
     encoding = SceneEncoding(catalog)
-    data = layout_tensors(load_rows(data_path, settings.split), encoding)
+    data = layout_tensors(load_rows(data_path, None if settings.split == "all" else settings.split), encoding)
     denoiser_config = DenoiserConfig(
         object_width=encoding.object_width,
         scene_width=encoding.scene_width,
@@ -188,7 +178,7 @@ def train(
         "tasks": list(tasks()),
         "tags": list(RARE_TAGS),
         "train": settings.model_dump(),
-        "data": {"path": str(data_path), "sha256": file_sha256(data_path), "rows": len(data)},
+        "data": {"path": str(data_path), "sha256": sha256_file(data_path), "rows": len(data)},
         "predicate_version": PREDICATE_VERSION,
         "catalog_sha256": catalog.sha256,
         "step": 0,

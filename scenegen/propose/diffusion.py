@@ -75,6 +75,12 @@ class DiffusionProposer:
         if self.config["encoding"]["assets"] != list(self.encoding.assets):
             raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
 
+    @functools.lru_cache(maxsize=16)  # noqa: B019 - one cost per request, for the proposer's lifetime
+    def _cost(self, required: tuple[str, ...]):
+        from scenegen.diffusion.cost import SceneCost
+
+        return SceneCost(self.encoding, required)
+
     def describe(self) -> dict:
         return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
 
@@ -98,7 +104,6 @@ class DiffusionProposer:
     def _one(self, condition: Condition, index: int, seed: int) -> SceneProposal:
         import torch
 
-        from scenegen.diffusion.cost import SceneCost
         from scenegen.diffusion.sample import sample
 
         s = self.settings
@@ -107,7 +112,7 @@ class DiffusionProposer:
         cfg = self.model.config
         noise_o = torch.randn(1, cfg.slots, cfg.object_width, generator=generator)
         noise_s = torch.randn(1, cfg.scene_width, generator=generator)
-        cost = SceneCost(self.encoding, tuple(condition.required())) if s.cost_weight > 0 else None
+        cost = self._cost(tuple(condition.required())) if s.cost_weight > 0 else None
         objects, scene = sample(
             self.model,
             self.config["train"],

@@ -11,7 +11,8 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from scenegen.diffusion.train import TrainSettings, file_sha256, train
+from scenegen.diffusion.train import TrainSettings, train
+from scenegen.store import sha256_file
 from scenegen.tags import PREDICATE_VERSION
 
 REFERENCE = Path(__file__).resolve().parents[2] / "assets" / "reference" / "reference.parquet"
@@ -35,7 +36,7 @@ def test_loss_goes_down(trained: Path):
 
 def test_checkpoint_records_its_data_and_predicates(trained: Path):
     config = json.loads((trained / "config.json").read_text())
-    assert config["data"]["sha256"] == file_sha256(REFERENCE)
+    assert config["data"]["sha256"] == sha256_file(REFERENCE)
     assert config["predicate_version"] == PREDICATE_VERSION
     assert config["step"] == TINY.steps and config["train"] == TINY.model_dump()
     weights = load_file(str(trained / "model.safetensors"))
