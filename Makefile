@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast test-full lint assets bench bench-rare clean
+.PHONY: setup demo test test-fast test-full lint assets bench bench-rare bench-null sweep clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -35,8 +35,14 @@ lint: setup
 bench: setup  ## pipeline throughput with 1 and 2 workers (benchmarks/pipeline_throughput.py)
 	$(BIN)/python benchmarks/pipeline_throughput.py
 
-bench-rare: setup  ## rare-case baselines: yield per CPU-second per tag (benchmarks/rare_case_yield.py)
+bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and the generator (benchmarks/rare_case_yield.py)
 	$(BIN)/python benchmarks/rare_case_yield.py
+
+bench-null: setup  ## 2,000 null-condition scenes of the generator against the held-out reference (benchmarks/null_condition.py)
+	$(BIN)/python benchmarks/null_condition.py
+
+sweep: setup  ## guidance sweep of the generator: runs/sweep/sweep.{md,png,json}
+	$(BIN)/scenegen sweep --workers 2
 
 assets: setup  ## rebuild assets/ (meshes, convex parts, catalog); coacd runs only for changed meshes
 	$(BIN)/python -m scenegen.assets.authoring

@@ -55,9 +55,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     gen.add_argument(
         "--proposer",
-        choices=("procedural", "targeted"),
-        help="proposer kind instead of the recipe's (keeps its shared settings): procedural = rejection "
-        "sampling from the recipe's distributions; targeted = hand-written rules per required tag",
+        choices=("diffusion", "procedural", "targeted"),
+        help="proposer kind instead of the recipe's (keeps its shared settings): diffusion = the trained "
+        "generator (assets/generator); procedural = rejection sampling from the recipe's distributions; "
+        "targeted = hand-written rules per required tag",
     )
     gen.add_argument("--workers", type=int, default=1, help="processes for check/settle/render (default 1)")
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
@@ -99,6 +100,37 @@ def _parser() -> argparse.ArgumentParser:
     tr.add_argument("--seed", type=int, help="seed (default 0)")
     tr.add_argument("--split", choices=("train", "heldout", "all"), help="rows to train on (default train)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    sw = sub.add_parser(
+        "sweep",
+        help="guidance sweep of the diffusion generator: adherence, acceptance, realism vs w",
+        description="Closed-loop guidance sweep (propose, check, settle, tag; no rendering): the null "
+        "condition, then for each w one request per rare tag ('retrieve the TARGET TAG', TARGET the "
+        "category holding the tag most often in the held-out reference), cost guidance off and on. "
+        "Writes OUT/sweep.md (table), OUT/sweep.png (plot) and OUT/sweep.json. Metrics: "
+        "scenegen/diffusion/sweep.py.",
+    )
+    sw.add_argument(
+        "pipeline",
+        type=Path,
+        nargs="?",
+        default=Path("pipelines/demo.yaml"),
+        help="recipe with a diffusion proposer",
+    )
+    sw.add_argument("--weights", type=float, nargs="+", help="guidance weights w (default 0 0.5 1 2 4)")
+    sw.add_argument(
+        "--cost-weight",
+        type=float,
+        default=0.1,
+        help="cost guidance of the 'on' cells (default 0.1; 0: off only)",
+    )
+    sw.add_argument("--proposals", type=int, default=12, help="proposals per request and cell (default 12)")
+    sw.add_argument("--tags", nargs="+", help="rare tags to request (default all)")
+    sw.add_argument("--reference", type=Path, default=Path("assets/reference/reference.parquet"))
+    sw.add_argument("--seed", type=int, help="seed (overrides the recipe's seed)")
+    sw.add_argument("--out", type=Path, default=Path("runs/sweep"))
+    sw.add_argument("--workers", type=int, default=1, help="processes for check/settle/tag (default 1)")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
 
     from scenegen import coverage  # numpy only: cheap to import for --help
 
@@ -243,6 +275,55 @@ def _train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sweep(args: argparse.Namespace) -> int:
+    import torch
+
+    from scenegen.assets.catalog import CatalogError
+    from scenegen.config import ConfigError, load_pipeline
+    from scenegen.diffusion import sweep
+    from scenegen.schema.condition import RARE_TAGS
+
+    if args.proposals < 1 or args.workers < 1:
+        return _fail("--proposals and --workers must be at least 1")
+    unknown = sorted(set(args.tags or ()) - set(RARE_TAGS))
+    if unknown:
+        return _fail(f"--tags {' '.join(unknown)}: not rare tags; valid: {', '.join(RARE_TAGS)}")
+    if args.cost_weight < 0:
+        return _fail(f"--cost-weight {args.cost_weight}: must be >= 0")
+    try:
+        config = load_pipeline(args.pipeline, {"seed": args.seed, "render": False})
+    except (ConfigError, CatalogError) as exc:
+        return _fail(str(exc))
+    if config.proposer.kind != "diffusion":
+        return _fail(
+            f"{args.pipeline}: proposer.kind is {config.proposer.kind}; the sweep needs kind: diffusion"
+        )
+    if not args.reference.is_file():
+        return _fail(f"--reference {args.reference}: no such Parquet file")
+    from scenegen.realism import load_rows
+
+    torch.set_num_threads(1)  # the sampler's CPU time is one thread's, like each check/settle worker's
+    heldout = load_rows(args.reference, "heldout")
+    targets = sweep.best_targets(heldout, args.tags or RARE_TAGS)
+    weights = args.weights if args.weights is not None else sweep.DEFAULT_WEIGHTS
+    cells = sweep.make_cells(config.condition, targets, weights, args.cost_weight)
+    results = sweep.run_sweep(config, cells, args.proposals, args.workers, progress=not args.quiet)
+    rows = [sweep.summarize(r, heldout, config.seed) for r in results]
+    meta = {
+        "pipeline": str(args.pipeline),
+        "checkpoint": config.proposer.checkpoint,
+        "steps": config.proposer.steps,
+        "seed": config.seed,
+        "proposals_per_request": args.proposals,
+        "targets": targets,
+        "reference": str(args.reference),
+    }
+    sweep.write_report(args.out, rows, meta)
+    print(sweep.table(rows))
+    print(f"-> {args.out}/sweep.md, sweep.png, sweep.json")
+    return 0
+
+
 def _show(args: argparse.Namespace) -> int:
     from scenegen.contact_sheet import SheetError, contact_sheet
 
@@ -288,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
-    no_gl = args.command == "train" or (args.command == "generate" and args.no_render)
+    no_gl = args.command in ("train", "sweep") or (args.command == "generate" and args.no_render)
     if no_gl and "mujoco" not in sys.modules:
         os.environ["MUJOCO_GL"] = "disable"  # no GL is touched: a broken GL set-up cannot get in the way
     backend = os.environ.get("MUJOCO_GL", "egl").lower().strip()
@@ -312,6 +393,8 @@ def main(argv: list[str] | None = None) -> int:
         return _reference(args)
     if args.command == "train":
         return _train(args)
+    if args.command == "sweep":
+        return _sweep(args)
     if args.command == "coverage":
         from scenegen import coverage
 

@@ -28,11 +28,12 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture(scope="session")
 def demo_batch(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A stored batch of 6 accepted scenes of pipelines/demo.yaml, seed 0 (real MuJoCo, ~10 s)."""
+    """A stored batch of 6 accepted scenes of pipelines/procedural.yaml (the demo request with the
+    procedural proposer), seed 0 (real MuJoCo, ~10 s)."""
     from scenegen.cli import main
 
     out = tmp_path_factory.mktemp("demo_batch") / "batch"
-    pipeline = PROJECT_ROOT / "pipelines" / "demo.yaml"
+    pipeline = PROJECT_ROOT / "pipelines" / "procedural.yaml"
     code = main(["generate", str(pipeline), "--n", "6", "--seed", "0", "--out", str(out), "--quiet"])
     assert code == 0, f"scenegen generate exited {code}"
     return out

@@ -19,7 +19,7 @@ from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement, SceneProposal
 
-DEMO = Path(__file__).resolve().parents[1] / "pipelines" / "demo.yaml"
+DEMO = Path(__file__).resolve().parents[1] / "pipelines" / "procedural.yaml"
 SMALL = (160, 120)  # width, height of the cameras of small_recipe
 
 
@@ -92,7 +92,8 @@ def small_recipe(
     n: int | None = None,
     n_objects: list[int] | None = None,
 ) -> Path:
-    """pipelines/demo.yaml with two small cameras (front, side) at the default poses, written to ``path``.
+    """pipelines/procedural.yaml with two small cameras (front, side) at the default poses, written to
+    ``path``.
 
     ``n`` (scenes) and ``n_objects`` (the proposer's range) replace the recipe's when given.
     """

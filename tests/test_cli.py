@@ -16,7 +16,7 @@ from scenegen.cli import main
 from scenegen.schema.condition import TAGS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEMO = REPO_ROOT / "pipelines" / "demo.yaml"
+DEMO = REPO_ROOT / "pipelines" / "procedural.yaml"
 USAGE_ERROR = 2
 PREFIX = "scenegen: error: "
 TOP_LEVEL_KEYS = ("max_proposals", "condition", "proposer", "checks", "settle")

@@ -17,7 +17,7 @@ import pytest
 from scenegen.cli import main
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-PIPELINE = REPO_ROOT / "pipelines" / "demo.yaml"
+PIPELINE = REPO_ROOT / "pipelines" / "procedural.yaml"
 N = 4
 BYTE_EQUAL = ("index.jsonl", "rejections.jsonl", "manifest.yaml", "pipeline.yaml")
 

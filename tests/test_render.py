@@ -30,7 +30,7 @@ from scenegen.render import SceneRenderer, encode_png
 from scenegen.schema.scene import Camera
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEMO = REPO_ROOT / "pipelines" / "demo.yaml"
+DEMO = REPO_ROOT / "pipelines" / "procedural.yaml"
 IMAGE_KINDS = ("rgb", "depth", "seg")
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_")  # robosuite's Panda, gripper and mount
 DEPTH_TOL_MM = 5.0

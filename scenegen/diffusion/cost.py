@@ -8,9 +8,13 @@ by a sigmoid, asset and support by a softmax), objects as bounding circles of th
   their footprint circles;
 - ``table_bounds``: how far the footprint of an object on the table leaves the table top;
 - ``robot_clearance``: overlap of footprints with a keep-out disc around the robot's base column;
-- soft required predicates: ``near_edge`` (target footprint beyond 3 cm from the nearest side edge),
-  ``clutter`` (missing neighbours within 0.2 m), ``on_floor`` (probability mass of the target's
-  support not on the floor).
+- soft required predicates, each on the slot the sample flags as target: ``near_edge`` (footprint
+  beyond 3 cm from the nearest side edge), ``clutter`` (missing neighbours within 0.2 m),
+  ``on_floor`` (probability that its support is not the floor), ``stacked`` (that it is not stacked),
+  ``toppled`` (that its resting pose is upright), ``under_overhang`` (that no shelf is present, or
+  that its centre is not under the shelf's board, or that it rests on the shelf), ``low_light``
+  (ambient + unshadowed direct light on an upward surface at the target above 0.22, an upper bound of
+  the predicate's irradiance, which also counts shadows). ``occluded`` has no soft version.
 
 Every term is >= 0 and 0 on scenes that satisfy it; :meth:`SceneCost.__call__` returns their
 weighted sum per sample.
@@ -18,15 +22,32 @@ weighted sum per sample.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from scenegen import world
-from scenegen.diffusion.encoding import SUPPORTS, XY_SCALE, SceneEncoding
-from scenegen.propose.procedural import footprint_radius
+from scenegen.diffusion.encoding import (
+    AMBIENT_CENTRE,
+    AMBIENT_SCALE,
+    FURNITURE_KINDS,
+    FURNITURE_SCALE,
+    INTENSITY_CENTRE,
+    INTENSITY_SCALE,
+    LIGHT_SCALE,
+    LIGHT_WIDTH,
+    SUPPORTS,
+    TINT_SCALE,
+    XY_SCALE,
+    SceneEncoding,
+)
+from scenegen.propose.procedural import FURNITURE_HOME, footprint_radius
 
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column
 SHARPNESS = 8.0  # presence logits are +-1; sigmoid(8 x) is ~0 or ~1 away from 0
+LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
+SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
 
 
 class SceneCost:
@@ -44,6 +65,13 @@ class SceneCost:
             asset = encoding.catalog.get(name)
             radii.append(max(footprint_radius(asset, p) for p in range(len(asset.resting_poses))))
         self.radii = torch.tensor(radii, dtype=torch.float32)
+        # upright[a, p]: resting pose p of asset a is upright (decoding clamps p to the asset's last pose)
+        upright = torch.zeros(len(encoding.assets), encoding.max_poses)
+        for a, name in enumerate(encoding.assets):
+            poses = encoding.catalog.get(name).resting_poses
+            for p in range(encoding.max_poses):
+                upright[a, p] = float(poses[min(p, len(poses) - 1)].upright)
+        self.upright = upright
         self.required = tuple(required)
         self.weights = {"penetration": 1.0, "table_bounds": 1.0, "robot_clearance": 1.0, **(weights or {})}
 
@@ -84,7 +112,58 @@ class SceneCost:
         if "on_floor" in self.required:
             off_floor = 1 - support_p[..., SUPPORTS.index("floor")]
             terms["on_floor"] = (target_p * off_floor).sum(1) * 0.1
+        if "stacked" in self.required:
+            not_stacked = 1 - support_p[..., SUPPORTS.index("stacked")]
+            terms["stacked"] = (target_p * not_stacked).sum(1) * 0.1
+        if "toppled" in self.required:
+            pose_p = torch.softmax(SHARPNESS * objects[..., e.pose_cols], dim=-1)  # (B, K, P)
+            upright = torch.einsum("bka,ap,bkp->bk", asset_p, self.upright, pose_p)
+            terms["toppled"] = (target_p * upright).sum(1) * 0.1
+        if "under_overhang" in self.required:
+            terms["under_overhang"] = self._under_overhang(scene, xy, radius, support_p, target_p) * 0.1
+        if "low_light" in self.required:
+            terms["low_light"] = torch.relu(self._light_bound(scene, xy, z, target_p) - LOW_LIGHT_BOUND)
         return terms
+
+    def _under_overhang(self, scene, xy, radius, support_p, target_p) -> torch.Tensor:
+        """1 - P(shelf present) x P(target centre under its board, a footprint radius inside its legs)
+        x P(target not on the shelf), for the flagged target."""
+        i = FURNITURE_KINDS.index("shelf")
+        present = torch.sigmoid(SHARPNESS * scene[:, 3 * i])
+        home = torch.tensor(FURNITURE_HOME["shelf"])
+        centre = home + scene[:, 3 * i + 1 : 3 * i + 3] * FURNITURE_SCALE  # (B, 2)
+        half = torch.tensor(world.FURNITURE["shelf"].surface_half) - torch.tensor([0.0, 0.02])
+        inside = (half - radius[..., None] * torch.tensor([0.0, 1.0]) - (xy - centre[:, None]).abs()) / 0.01
+        under = torch.sigmoid(inside).prod(-1)  # (B, K)
+        below = 1 - support_p[..., SUPPORTS.index("shelf")]
+        return 1 - present * (target_p * under * below).sum(1)
+
+    def _light_bound(self, scene, xy, z, target_p) -> torch.Tensor:
+        """Ambient + sum of unshadowed direct light on an upward surface at the flagged target (the
+        predicate's formula without its shadow rays: an upper bound of what it measures)."""
+        base = 3 * len(FURNITURE_KINDS)
+        irradiance = scene[:, base] * AMBIENT_SCALE + AMBIENT_CENTRE
+        point = torch.cat([(target_p[..., None] * xy).sum(1), (target_p * z).sum(1, keepdim=True)], -1)
+        point = point + torch.tensor([0.0, 0.0, world.TABLE_TOP_Z])
+        for i in range(self.encoding.light_slots):
+            v = scene[:, base + 1 + LIGHT_WIDTH * i : base + 1 + LIGHT_WIDTH * (i + 1)]
+            present = torch.sigmoid(SHARPNESS * v[:, 0])
+            pos = torch.stack([v[:, 1] * LIGHT_SCALE, v[:, 2] * LIGHT_SCALE, v[:, 3] * LIGHT_SCALE], -1)
+            pos = pos + torch.tensor([0.0, 0.0, world.TABLE_TOP_Z])
+            aim = torch.stack(
+                [v[:, 4] * XY_SCALE, v[:, 5] * XY_SCALE, torch.full_like(v[:, 4], world.TABLE_TOP_Z)], -1
+            )
+            axis = torch.nn.functional.normalize(aim - pos, dim=-1)
+            to_light = torch.nn.functional.normalize(pos - point, dim=-1)
+            cos_spot = (-to_light * axis).sum(-1)
+            inside = torch.sigmoid((cos_spot - math.cos(SPOT_CUTOFF)) / 0.01)
+            falloff = torch.relu(cos_spot) ** SPOT_EXPONENT
+            tint = v[:, 6] * TINT_SCALE
+            colour = ((1 + tint).clamp(0, 1) + 1 + (1 - tint).clamp(0, 1)) / 3
+            intensity = (v[:, 7] * INTENSITY_SCALE + INTENSITY_CENTRE).clamp(0, 3)
+            incidence = torch.relu(to_light[:, 2])
+            irradiance = irradiance + present * colour * intensity * inside * falloff * incidence
+        return irradiance
 
     def __call__(self, objects: torch.Tensor, scene: torch.Tensor) -> torch.Tensor:
         terms = self.terms(objects, scene)

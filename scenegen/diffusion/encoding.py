@@ -169,10 +169,14 @@ class SceneEncoding:
         cameras: Sequence[Camera],
         index: int = 0,
         seed: int = 0,
+        own_target: bool = False,
     ) -> Decoded:
         """A proposal from (possibly noisy) tokens: discrete fields by argmax, objects snapped onto a
         resting pose at their support's height, the target an object of ``condition.target``'s
-        category (see :meth:`_target`). Raises ValueError when no slot is present."""
+        category (see :meth:`_target`). Raises ValueError when no slot is present.
+
+        ``own_target``: the target is the slot the sample flags most, whatever its category, and the
+        proposal's condition names that category (for samples of the null condition)."""
         tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
         furniture = self._furniture(scene)
         surfaces = world.support_surfaces(furniture)
@@ -184,7 +188,7 @@ class SceneEncoding:
             if kind in FURNITURE_KINDS and kind not in surfaces:
                 support_of[s] = "table"  # furniture that is absent cannot hold anything
         order = sorted(present, key=lambda s: (support_of[s] == "stacked", s))
-        target, asset_of = self._target(tokens, present, condition.target)
+        target, asset_of = self._target(tokens, present, None if own_target else condition.target)
         placed: dict[int, ObjectPlacement] = {}
         projection: dict[int, float] = {}
         for s in order:
@@ -209,6 +213,9 @@ class SceneEncoding:
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
             placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
             projection[s] = placed[s].projection_distance
+        if own_target:
+            category = self.catalog.get(asset_of[target]).category
+            condition = condition.model_copy(update={"target": category, "text": None})
         proposal = SceneProposal(
             index=index,
             seed=seed,
@@ -221,11 +228,16 @@ class SceneEncoding:
         )
         return Decoded(proposal, tuple(projection[s] for s in sorted(placed)))
 
-    def _target(self, tokens: np.ndarray, present: list[int], category: str) -> tuple[int, dict[int, str]]:
+    def _target(
+        self, tokens: np.ndarray, present: list[int], category: str | None
+    ) -> tuple[int, dict[int, str]]:
         """The target slot and every present slot's asset (argmax). The target is the slot with the
         highest target flag among those holding an asset of the requested category; if none does, the
-        highest-flag slot becomes the best-scoring asset of that category."""
+        highest-flag slot becomes the best-scoring asset of that category. ``category`` None: the
+        highest-flag slot, as it is."""
         asset_of = {s: self.assets[int(np.argmax(tokens[s, self.asset_cols]))] for s in present}
+        if category is None:
+            return max(present, key=lambda s: tokens[s, self.target_col]), asset_of
         in_category = [s for s in present if self.catalog.get(asset_of[s]).category == category]
         target = max(in_category or present, key=lambda s: tokens[s, self.target_col])
         if not in_category:

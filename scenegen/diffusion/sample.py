@@ -5,8 +5,13 @@ Per step, with a_t the cumulative alpha of timestep t:
 
     eps~   = (1 + w) eps(x_t, t, c) - w eps(x_t, t, null)          (model.guided_eps)
     x0_hat = (x_t - sqrt(1 - a_t) eps~) / sqrt(a_t)
-    eps~  += cost_weight * sqrt(1 - a_t) * grad_x0 cost(x0_hat)     (only when cost_weight > 0)
+    x0_hat -= cost_weight * grad_x0 cost(x0_hat)                   (only when cost_weight > 0)
+    eps~   = (x_t - sqrt(a_t) x0_hat) / sqrt(1 - a_t)
     x_{t-1} = DDIM step (eta 0, clip_sample off, trailing spacing)
+
+The cost step is taken on the clean-scene estimate, in token units, and eps~ is re-derived from it.
+Adding a gradient to eps~ instead would be divided by sqrt(a_t) (~1e-4 at the first steps) in the
+DDIM step's own x0 estimate and throw samples hundreds of metres away.
 
 A fresh scheduler is made for every call (schedulers keep state). Sampling is deterministic for the
 initial noise, which the caller draws from its own generator per sample.
@@ -88,6 +93,6 @@ def sample(
             x0 = ((x - (1 - a).sqrt() * eps) / a.sqrt()).detach().requires_grad_(True)
             value = cost(x0[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x0[:, n_obj:]).sum()
             (grad,) = torch.autograd.grad(value, x0)
-            eps = eps + cost_weight * (1 - a).sqrt() * grad
+            eps = (x - a.sqrt() * (x0.detach() - cost_weight * grad)) / (1 - a).sqrt()
         x = scheduler.step(eps, int(t), x, eta=0.0).prev_sample
     return x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]

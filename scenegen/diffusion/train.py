@@ -139,6 +139,12 @@ def loss_curve_png(losses: list[float], size: tuple[int, int] = (640, 360)) -> b
     return png.tobytes()
 
 
+def _unextendable(section: dict, key: str) -> dict:
+    """A checkpoint config section without what a resumed run may change: the number of steps (the
+    learning rate is constant, so 6,000 steps extended to 12,000 equal 12,000 in one run)."""
+    return {k: v for k, v in section.items() if k != "steps"} if key == "train" else section
+
+
 def train(
     data_path: Path, out: Path, settings: TrainSettings, progress: bool = True, stop_after: int | None = None
 ) -> dict:
@@ -188,8 +194,10 @@ def train(
     if (out / "config.json").is_file():
         saved = json.loads((out / "config.json").read_text())
         for key in ("denoiser", "train", "data", "predicate_version"):
-            if saved[key] != config[key]:
+            if _unextendable(saved[key], key) != _unextendable(config[key], key):
                 raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
+        if saved["step"] > settings.steps:
+            raise ValueError(f"{out}: already trained {saved['step']} steps; --steps must be at least that")
         state = load_file(str(out / "train_state.safetensors"))
         model.load_state_dict({k[6:]: v for k, v in state.items() if k.startswith("model.")})
         ema.load_state_dict(load_file(str(out / "model.safetensors")))

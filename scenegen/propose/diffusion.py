@@ -20,6 +20,7 @@ from scenegen.assets.catalog import Catalog
 from scenegen.paths import PROJECT_ROOT
 from scenegen.propose.base import proposal_rng, register_proposer
 from scenegen.propose.procedural import DEFAULT_CAMERAS, jitter_cameras
+from scenegen.propose.separate import separate
 from scenegen.schema.condition import RARE_TAGS, Condition
 from scenegen.schema.scene import Camera, SceneProposal
 
@@ -35,6 +36,8 @@ class DiffusionSettings(BaseModel):
     steps: int = Field(20, ge=1, le=1000)  # DDIM sampling steps
     cost_weight: float = Field(0.0, ge=0.0)  # cost-gradient guidance (scenegen/diffusion/cost.py)
     unconditional: bool = False  # sample the null condition (the model's own distribution)
+    separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
+    max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
     cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
 
@@ -99,11 +102,16 @@ class DiffusionProposer:
         return c.null_like(self.model.config) if self.settings.unconditional else c
 
     def propose(self, condition: Condition, indices: Sequence[int], seed: int) -> list[SceneProposal]:
-        return [self._one(condition, i, seed) for i in indices]
+        return [self.decoded(condition, i, seed).proposal for i in indices]
 
-    def _one(self, condition: Condition, index: int, seed: int) -> SceneProposal:
+    def decoded(self, condition: Condition, index: int, seed: int):
+        """Proposal ``index`` with its projection distances (``encoding.Decoded``).
+
+        With ``unconditional`` the target is the sample's own and the proposal's condition names its
+        category; the request's tags still decide acceptance."""
         import torch
 
+        from scenegen.diffusion.encoding import Decoded
         from scenegen.diffusion.sample import sample
 
         s = self.settings
@@ -128,4 +136,10 @@ class DiffusionProposer:
         objects, scene = objects[0].numpy().astype(np.float64), scene[0].numpy().astype(np.float64)
         if not (objects[:, 0] > 0).any():
             objects[int(np.argmax(objects[:, 0])), 0] = 1.0  # at least the most likely object
-        return self.encoding.decode(objects, scene, condition, cameras, index, seed).proposal
+        decoded = self.encoding.decode(
+            objects, scene, condition, cameras, index, seed, own_target=s.unconditional
+        )
+        if not s.separate:
+            return decoded
+        proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift)
+        return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

@@ -52,11 +52,43 @@ def test_moving_objects_onto_each_other_or_off_the_table_costs(encoding, tokens)
     assert cost.terms(off, scene[i : i + 1])["table_bounds"] > base["table_bounds"] + 0.2
 
 
-def test_soft_near_edge_separates_the_reference_layouts_that_hold_it(encoding, tokens):
+@pytest.mark.parametrize(
+    ("tag", "ratio"),
+    [
+        ("near_edge", 0.1),
+        ("clutter", 0.2),
+        ("on_floor", 0.1),
+        ("stacked", 0.1),
+        ("toppled", 0.1),
+        ("under_overhang", 0.2),
+        # an upper bound without the predicate's shadow rays: the reference's dim scenes are mostly
+        # shadowed ones, so it separates them less sharply
+        ("low_light", 0.6),
+    ],
+)
+def test_soft_predicates_separate_the_reference_layouts_that_hold_them(encoding, tokens, tag, ratio):
     rows, objects, scene = tokens
-    near = torch.tensor([bool(r["tag_near_edge"]) for r in rows])
-    term = SceneCost(encoding, required=("near_edge",)).terms(objects, scene)["near_edge"]
-    assert near.any() and term[near].mean() < 0.1 * term[~near].mean()
+    holds = torch.tensor([bool(r[f"tag_{tag}"]) for r in rows])
+    term = SceneCost(encoding, required=(tag,)).terms(objects, scene)[tag]
+    assert holds.sum() >= 3, tag
+    assert term[holds].mean() < ratio * term[~holds].mean(), (
+        float(term[holds].mean()),
+        float(term[~holds].mean()),
+    )
+    assert (term >= 0).all()
+
+
+def test_soft_low_light_is_the_predicates_formula_without_shadows(encoding, tokens):
+    """Where nothing shadows the target the bound equals the measured irradiance (to the encoding's
+    rounding); elsewhere it is above it."""
+    rows, objects, scene = tokens
+    e = encoding
+    target = torch.softmax(8 * objects[..., e.target_col], -1)
+    xyz = objects[..., e.xyz_cols] * XY_SCALE
+    bound = SceneCost(encoding, ("low_light",))._light_bound(scene, xyz[..., :2], xyz[..., 2], target)
+    measured = torch.tensor([r["value_low_light"] for r in rows], dtype=torch.float32)
+    assert (bound >= measured - 0.05).float().mean() > 0.97
+    assert ((bound - measured).abs() < 0.02).float().mean() > 0.5
 
 
 def test_cost_guidance_lowers_the_cost(encoding):

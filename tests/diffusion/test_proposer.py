@@ -76,3 +76,64 @@ def test_missing_checkpoint_is_a_recipe_error(tmp_path: Path):
     path.write_text(yaml.safe_dump({"name": "x", "proposer": {"kind": "diffusion", "checkpoint": "nowhere"}}))
     with pytest.raises(ConfigError, match="proposer.checkpoint: nowhere: no checkpoint there"):
         load_pipeline(path)
+
+
+def test_null_condition_samples_keep_their_own_target(recipe: Path):
+    config = load_pipeline(recipe)
+    settings = config.proposer.model_copy(update={"unconditional": True})
+    proposer = PROPOSERS["diffusion"](settings, load_catalog())
+    categories = set()
+    for p in proposer.propose(config.condition, range(12), seed=0):
+        target = next(o for o in p.objects if o.name == p.target)
+        assert p.condition.target == target.category  # the record names the sample's own target
+        assert p.condition.tags == config.condition.tags
+        categories.add(target.category)
+    assert len(categories) > 1  # not forced to the recipe's mug
+
+
+def test_separation_only_moves_objects_apart(recipe: Path):
+    config = load_pipeline(recipe)
+    catalog = load_catalog()
+    raw = PROPOSERS["diffusion"](config.proposer.model_copy(update={"separate": False}), catalog)
+    pushed = PROPOSERS["diffusion"](config.proposer, catalog)
+    for i in range(6):
+        a, b = raw.decoded(config.condition, i, 0), pushed.decoded(config.condition, i, 0)
+        assert [o.name for o in a.proposal.objects] == [o.name for o in b.proposal.objects]
+        for before, after in zip(a.proposal.objects, b.proposal.objects, strict=True):
+            moved = (
+                (after.position[0] - before.position[0]) ** 2 + (after.position[1] - before.position[1]) ** 2
+            ) ** 0.5
+            assert after.position[2] == before.position[2]
+            assert moved <= config.proposer.max_shift + 1e-6
+            assert after.projection_distance >= before.projection_distance - 1e-9
+        assert b.projection == tuple(o.projection_distance for o in b.proposal.objects)
+
+
+def test_sweep_writes_its_table_plot_and_numbers(recipe: Path, tmp_path: Path):
+    out = tmp_path / "sweep"
+    args = ["sweep", str(recipe), "--proposals", "3", "--tags", "on_floor", "--weights", "0", "2"]
+    assert main([*args, "--out", str(out), "--quiet"]) == 0
+    result = json.loads((out / "sweep.json").read_text())
+    cells = {c["cell"]: c for c in result["cells"]}
+    assert list(cells) == ["null", "w=0", "w=0 +cost", "w=2", "w=2 +cost"]
+    assert (
+        set(result["targets"]) == {"on_floor"} and result["targets"]["on_floor"] in load_catalog().categories
+    )
+    for c in cells.values():
+        assert c["proposals"] == 3
+        rejected = sum(c["rejections"].values()) * 3
+        assert round(rejected) + c["accepted"] == 3
+        passed = c["accepted"] + c["rejections"].get("condition_unmet", 0) * 3
+        assert c["pass_rate"] == pytest.approx(passed / 3)
+        assert c["cpu_s_per_proposal"] > 0 and c["proposals_per_s"] > 0
+    assert cells["null"]["adherence"] in (None, 1.0)  # nothing is required of the null condition
+    assert set(cells["null"]["tag_rates"]) == set(cells["null"]["reference_rates"])
+    table = (out / "sweep.md").read_text()
+    assert table.startswith("| cell |") and table.count("\n") == 2 + 5
+    assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sweep_needs_a_diffusion_recipe(capsys):
+    procedural = Path(__file__).resolve().parents[2] / "pipelines" / "procedural.yaml"
+    assert main(["sweep", str(procedural), "--quiet"]) == 2
+    assert "the sweep needs kind: diffusion" in capsys.readouterr().err

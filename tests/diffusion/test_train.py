@@ -57,6 +57,19 @@ def test_resumed_training_equals_uninterrupted(trained: Path, tmp_path: Path):
     )
 
 
+def test_extended_training_equals_training_that_long(trained: Path, tmp_path: Path):
+    """The shipped checkpoint was trained this way: N steps, then resumed with a larger --steps."""
+    out = tmp_path / "extended"
+    train(REFERENCE, out, TINY.model_copy(update={"steps": 40}), progress=False)
+    train(REFERENCE, out, TINY, progress=False)
+    a, b = load_file(str(trained / "model.safetensors")), load_file(str(out / "model.safetensors"))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    config = json.loads((out / "config.json").read_text())
+    assert config["step"] == TINY.steps and config["train"]["steps"] == TINY.steps
+    with pytest.raises(ValueError, match="already trained"):
+        train(REFERENCE, out, TINY.model_copy(update={"steps": 40}), progress=False)
+
+
 def test_other_settings_do_not_resume_a_checkpoint(trained: Path):
     with pytest.raises(ValueError, match="another train"):
         train(REFERENCE, trained, TINY.model_copy(update={"lr": 0.5}), progress=False)

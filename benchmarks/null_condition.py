@@ -1,0 +1,106 @@
+"""The generator's own distribution: N accepted scenes sampled under the null condition, compared with
+the held-out reference layouts (tag rates, classifier two-sample test, MMD).
+
+    .venv/bin/python benchmarks/null_condition.py [--n 2000] [--workers 2] [--out runs/null_condition]
+
+The batch is `scenegen generate` of the reference recipe (pipelines/reference.yaml: its checks,
+settling and tags) with the proposer of --generator (pipelines/demo.yaml: the shipped checkpoint and
+its settings) sampling the null condition (`unconditional: true`; nothing required, so nothing is
+rejected as condition_unmet). It is resumable: a killed run continues when the same command is run
+again. Every tag is then read from the stored scene.json files and compared with the held-out
+split of the reference set: each tag's rate must lie within max(1 point, 30 % of the reference
+rate), and the C2ST accuracy (scenegen.realism.c2st, 5 folds) must be at most 0.60. Prints a table,
+saves JSON; exit code 1 when a criterion fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import yaml
+
+from scenegen.config import load_pipeline
+from scenegen.pipeline import run_batch
+from scenegen.realism import c2st, feature_matrix, load_rows, mmd, record_row
+from scenegen.schema.condition import TAGS
+from scenegen.schema.scene import SceneRecord
+
+C2ST_MAX = 0.60
+
+
+def tolerance(rate: float) -> float:
+    return max(0.01, 0.3 * rate)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=2000, help="accepted scenes (default 2000)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path("runs/null_condition"))
+    parser.add_argument("--recipe", type=Path, default=Path("pipelines/reference.yaml"))
+    parser.add_argument("--generator", type=Path, default=Path("pipelines/demo.yaml"))
+    parser.add_argument("--reference", type=Path, default=Path("assets/reference/reference.parquet"))
+    parser.add_argument("--json", type=Path, default=Path("benchmarks/results/null_condition.json"))
+    args = parser.parse_args()
+
+    proposer = {**yaml.safe_load(args.generator.read_text())["proposer"], "unconditional": True}
+    config = load_pipeline(
+        args.recipe,
+        {"name": "null_condition", "n": args.n, "seed": args.seed, "render": False, "proposer": proposer},
+    )
+    summary = run_batch(config, args.out, workers=args.workers)
+    records = [
+        SceneRecord.model_validate_json(p.read_text()) for p in sorted(args.out.glob("scene_*/scene.json"))
+    ]
+    heldout = load_rows(args.reference, "heldout")
+    rows = []
+    ok = True
+    for tag in TAGS:
+        rate = sum(r.tags[tag].holds for r in records) / len(records)
+        ref = sum(bool(h[f"tag_{tag}"]) for h in heldout) / len(heldout)
+        within = abs(rate - ref) <= tolerance(ref) + 1e-12
+        ok &= within
+        rows.append(
+            {"tag": tag, "rate": rate, "reference": ref, "tolerance": tolerance(ref), "within": within}
+        )
+    a, b = feature_matrix([record_row(r) for r in records]), feature_matrix(heldout)
+    test = c2st(a, b, seed=args.seed)
+    kernel = mmd(a, b, seed=args.seed)
+    ok &= test.accuracy <= C2ST_MAX
+    print(
+        f"\n{len(records)} accepted of {summary.proposals} proposals ({len(records) / summary.proposals:.0%})"
+    )
+    print("rejections: " + ", ".join(f"{k} {v}" for k, v in summary.rejections.most_common()))
+    print("\n| tag | generated | held-out reference | allowed difference | within |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['tag']} | {r['rate']:.2%} | {r['reference']:.2%} | {r['tolerance']:.2%} "
+            f"| {'yes' if r['within'] else 'NO'} |"
+        )
+    print(
+        f"\nC2ST {test.accuracy:.3f} [{test.ci[0]:.3f}, {test.ci[1]:.3f}] (n {test.n}; at most {C2ST_MAX}), "
+        f"MMD^2 {kernel.mmd2:.4f} p {kernel.p_value:.3f}"
+    )
+    result = {
+        "args": {k: str(v) for k, v in vars(args).items()},
+        "accepted": len(records),
+        "proposals": summary.proposals,
+        "rejections": dict(summary.rejections),
+        "tags": rows,
+        "c2st": {"accuracy": test.accuracy, "ci": test.ci, "n": test.n, "max": C2ST_MAX},
+        "mmd": {"mmd2": kernel.mmd2, "p_value": kernel.p_value},
+        "passed": bool(ok),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(result, indent=1) + "\n")
+    print(f"{'passed' if ok else 'FAILED'}; saved {args.json}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
