@@ -320,6 +320,8 @@ def _sweep(args: argparse.Namespace) -> int:
     }
     sweep.write_report(args.out, rows, meta)
     print(sweep.table(rows))
+    print("\naccepted / proposals (adherence) per request:\n")
+    print(sweep.request_table(rows))
     print(f"-> {args.out}/sweep.md, sweep.png, sweep.json")
     return 0
 

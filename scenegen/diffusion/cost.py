@@ -8,6 +8,9 @@ by a sigmoid, asset and support by a softmax), objects as bounding circles of th
   their footprint circles;
 - ``table_bounds``: how far the footprint of an object on the table leaves the table top;
 - ``robot_clearance``: overlap of footprints with a keep-out disc around the robot's base column;
+- ``reach`` (when the shoulder position is given): how far the flagged target's centre lies outside
+  the arm's envelope, 3 cm inside the reachability check's [0.25, 0.95] m around the shoulder
+  (weighted by the probability that the target is not on the floor, which is exempt);
 - soft required predicates, each on the slot the sample flags as target: ``near_edge`` (footprint
   beyond 3 cm from the nearest side edge), ``clutter`` (missing neighbours within 0.2 m),
   ``on_floor`` (probability that its support is not the floor), ``stacked`` (that it is not stacked),
@@ -46,6 +49,7 @@ from scenegen.propose.procedural import FURNITURE_HOME, footprint_radius
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column
 SHARPNESS = 8.0  # presence logits are +-1; sigmoid(8 x) is ~0 or ~1 away from 0
+REACH, REACH_MARGIN = (0.25, 0.95), 0.03  # m: CheckSettings.reach_min / reach_max, and a margin
 LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
 SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
 
@@ -58,6 +62,7 @@ class SceneCost:
         encoding: SceneEncoding,
         required: tuple[str, ...] = (),
         weights: dict[str, float] | None = None,
+        shoulder: tuple[float, float, float] | None = None,
     ):
         self.encoding = encoding
         radii = []
@@ -73,7 +78,14 @@ class SceneCost:
                 upright[a, p] = float(poses[min(p, len(poses) - 1)].upright)
         self.upright = upright
         self.required = tuple(required)
-        self.weights = {"penetration": 1.0, "table_bounds": 1.0, "robot_clearance": 1.0, **(weights or {})}
+        self.shoulder = None if shoulder is None else torch.tensor(shoulder, dtype=torch.float32)
+        self.weights = {
+            "penetration": 1.0,
+            "table_bounds": 1.0,
+            "robot_clearance": 1.0,
+            "reach": 1.0,
+            **(weights or {}),
+        }
 
     def terms(self, objects: torch.Tensor, scene: torch.Tensor) -> dict[str, torch.Tensor]:
         e = self.encoding
@@ -101,6 +113,13 @@ class SceneCost:
         base = torch.tensor(ROBOT_BASE_XY)
         to_base = ((xy - base).pow(2).sum(-1) + 1e-9).sqrt()
         terms["robot_clearance"] = (present * torch.relu(ROBOT_KEEP_OUT + radius - to_base)).sum(1)
+
+        if self.shoulder is not None:
+            point = torch.cat([xy, (z + world.TABLE_TOP_Z)[..., None]], -1)
+            r = ((point - self.shoulder).pow(2).sum(-1) + 1e-9).sqrt()
+            outside = torch.relu(r - (REACH[1] - REACH_MARGIN)) + torch.relu(REACH[0] + REACH_MARGIN - r)
+            not_floor = 1 - support_p[..., SUPPORTS.index("floor")]
+            terms["reach"] = (target_p * not_floor * outside).sum(1)
 
         if "near_edge" in self.required:
             edge = torch.minimum(half[1] - xy[..., 1].abs(), half[0] - xy[..., 0].abs()) - radius

@@ -1,7 +1,8 @@
 """The guidance sweep: the diffusion proposer in the closed loop (propose, check, build, settle, tag)
 for the null condition and for each guidance weight w, with cost guidance off and on.
 
-Cells: ``null`` (the model's own distribution; the null condition, no tag required) and, for each w
+Cells: ``null`` (the model's own distribution; the null condition, no tag required; with and
+without the cost's feasibility terms) and, for each w
 and cost weight, one request per rare tag, "TASK the TARGET TAG", with TARGET the category under
 which the held-out reference holds that tag most often. Every cell proposes the same indices with
 the same seed, so cells differ by their settings, not by their noise (common random numbers).
@@ -56,6 +57,7 @@ class CellResult:
     proposals: int = 0
     accepted: list = field(default_factory=list)  # (request index, SceneRecord)
     rejections: Counter = field(default_factory=Counter)
+    per_request: list[Counter] = field(default_factory=list)  # per request: proposals, accepted, labels
     projection: list[float] = field(default_factory=list)
     sample_seconds: float = 0.0
     stage_seconds: float = 0.0
@@ -80,12 +82,15 @@ def make_cells(
     weights: Sequence[float],
     cost_weight: float,
 ) -> list[Cell]:
-    """The null cell, then per w a cell with cost guidance off and (if ``cost_weight`` > 0) on."""
+    """The null cells, then per w one cell with cost guidance off and (if ``cost_weight`` > 0) one on."""
     requests = tuple(
         base.model_copy(update={"target": target, "tags": {tag: "required"}, "text": None})
         for tag, target in targets.items()
     )
-    cells = [Cell("null", None, 0.0, (base.model_copy(update={"tags": {}, "text": None}),))]
+    null = (base.model_copy(update={"tags": {}, "text": None}),)
+    cells = [Cell("null", None, 0.0, null)]
+    if cost_weight > 0:
+        cells.append(Cell("null +cost", None, cost_weight, null))
     for w in weights:
         cells.append(Cell(f"w={w:g}", w, 0.0, requests))
         if cost_weight > 0:
@@ -112,7 +117,7 @@ def run_sweep(
 
     catalog = load_catalog()
     base = config.model_copy(update={"render": False})
-    results = [CellResult(cell) for cell in cells]
+    results = [CellResult(cell, per_request=[Counter() for _ in cell.requests]) for cell in cells]
     owner: deque = deque()  # (cell index, request index) of each proposal in flight, in order
 
     def stream() -> Iterator:
@@ -144,17 +149,33 @@ def run_sweep(
             c, r = owner.popleft()
             result = results[c]
             result.proposals += 1
+            result.per_request[r]["proposals"] += 1
             result.stage_seconds += sum(outcome.seconds.values())
             if outcome.record is not None:
                 result.accepted.append((r, outcome.record))
+                result.per_request[r]["accepted"] += 1
             else:
                 result.rejections[outcome.rejection.label] += 1
+                result.per_request[r][outcome.rejection.label] += 1
             bar.set_postfix_str(cells[c].name, refresh=False)
             bar.update(1)
     finally:
         outcomes.close()
         bar.close()
     return results
+
+
+def _request_row(request: Condition, counts: Counter) -> dict:
+    """Pass rate and adherence of one request of a cell."""
+    n = max(counts["proposals"], 1)
+    passed = counts["accepted"] + counts["condition_unmet"]
+    return {
+        "request": " ".join([request.task, request.target, *request.required()]),
+        "proposals": counts["proposals"],
+        "accepted": counts["accepted"],
+        "pass_rate": passed / n,
+        "adherence": counts["accepted"] / passed if passed else None,
+    }
 
 
 def _diversity(features: np.ndarray, scale: np.ndarray) -> float:
@@ -187,6 +208,10 @@ def summarize(result: CellResult, heldout: Sequence[dict], seed: int) -> dict:
         "mmd_p": None,
         "diversity": None,
         "compared": 0,
+        "requests": [
+            _request_row(request, counts)
+            for request, counts in zip(cell.requests, result.per_request, strict=True)
+        ],
     }
     if cell.guidance is None:
         rows = [record_row(rec) for _, rec in result.accepted]
@@ -229,6 +254,22 @@ def _fmt(value, spec: str = ".2f") -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, spec)
 
 
+def request_table(rows: Sequence[dict]) -> str:
+    """Per request: accepted / proposals (adherence) in each guided cell, as a Markdown table."""
+    guided = [r for r in rows if r["guidance"] is not None]
+    if not guided:
+        return ""
+    lines = ["| request | " + " | ".join(r["cell"] for r in guided) + " |", "|---" * (1 + len(guided)) + "|"]
+    for i, first in enumerate(guided[0]["requests"]):
+        cells = [r["requests"][i] for r in guided]
+        lines.append(
+            f"| {first['request']} | "
+            + " | ".join(f"{c['accepted']}/{c['proposals']} ({_fmt(c['adherence'], '.0%')})" for c in cells)
+            + " |"
+        )
+    return "\n".join(lines)
+
+
 def table(rows: Sequence[dict]) -> str:
     """The sweep as a Markdown table."""
     head = (
@@ -254,7 +295,7 @@ _COLOURS = {"off": (200, 90, 30), "on": (40, 140, 40), "null": (120, 120, 120)} 
 
 def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
     """Four panels against w (pass rate, adherence, C2ST, proposals/s), cost guidance off and on,
-    the null condition as a dashed grey line. PNG bytes."""
+    the null condition (with cost, if swept) as a dashed grey line. PNG bytes."""
     import cv2
 
     panels = (
@@ -265,7 +306,9 @@ def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
     )
     w, h = size
     image = np.full((h, w, 3), 255, np.uint8)
-    null = next((r for r in rows if r["guidance"] is None), None)
+    null = next((r for r in rows if r["guidance"] is None and r["cost_weight"] > 0), None) or next(
+        (r for r in rows if r["guidance"] is None), None
+    )
     guided = [r for r in rows if r["guidance"] is not None]
     weights = sorted({r["guidance"] for r in guided}) or [0.0]
     cv2.putText(image, "guidance sweep: w on the x axis", (20, 24), 0, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
@@ -321,6 +364,9 @@ def write_report(out: Path, rows: Sequence[dict], meta: dict) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "sweep.json", json.dumps({**meta, "cells": list(rows)}, indent=1) + "\n")
-    atomic_write(out / "sweep.md", table(rows) + "\n")
+    atomic_write(
+        out / "sweep.md",
+        table(rows) + "\n\naccepted / proposals (adherence) per request:\n\n" + request_table(rows) + "\n",
+    )
     (out / "sweep.png.tmp").write_bytes(plot(rows))
     (out / "sweep.png.tmp").replace(out / "sweep.png")

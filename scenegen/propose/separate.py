@@ -6,13 +6,16 @@ check would reject. :func:`separate` resolves them the way the decoder snaps obj
 resting heights: as a projection onto the feasible set that moves objects as little as it can and
 adds the distance to each object's ``projection_distance``.
 
-Per round, every pair whose signed distance (the check's own, ``check.geometry.signed_distance``) is
-below ``clearance`` is pushed apart along the line between their centres in the table plane, each
-object taking half. Objects stacked on a moved object move with it; a stacked pair is left to the
-support check. An object that hits a piece of furniture (a shelf leg or board, a bin wall) takes the
-whole push, away from that board's centre. An object stops once it has moved ``max_shift``; what
-still overlaps then is the collision check's to reject. The checks themselves are unchanged:
-separating only changes what they are shown.
+Per round, every pair whose signed distance (the check's own, ``check.geometry.signed_distance``)
+shows an overlap (below -0.2 mm; resting contact is 0) gets the smallest horizontal push that
+separates its deepest pair of convex pieces (:func:`horizontal_push`: the separating-axis candidates
+of the two pieces, projected onto the table plane; once the pieces' shadows on one such axis are
+``clearance`` apart, so are the pieces; pieces that only overlap vertically by a resting contact are
+skipped), each object taking half. Objects stacked on a moved object move with it; a stacked pair is
+left to the support check. An object that hits a piece of furniture (a shelf leg or board, a bin
+wall) takes the whole push. An object stops once it has moved ``max_shift``; what still overlaps
+then is the collision check's to reject. The checks themselves are unchanged: separating only
+changes what they are shown.
 """
 
 from __future__ import annotations
@@ -22,9 +25,18 @@ import math
 import numpy as np
 
 from scenegen.assets.catalog import Catalog
-from scenegen.check.geometry import Solid, _aabb_overlap, box_solid, object_solid, signed_distance
+from scenegen.check.geometry import (
+    Polytope,
+    Solid,
+    _aabb_overlap,
+    box_solid,
+    object_solid,
+    signed_distance,
+)
 from scenegen.schema.scene import ObjectPlacement, SceneProposal
 from scenegen.world import furniture_boxes
+
+RESTING = 2e-4  # m: pieces overlapping less than this (vertically, or at all) are in resting contact
 
 
 def _direction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -32,6 +44,43 @@ def _direction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = np.asarray(a[:2], float) - np.asarray(b[:2], float)
     n = float(np.hypot(*d))
     return d / n if n > 1e-9 else np.array([1.0, 0.0])
+
+
+def _piece_push(qa: Polytope, qb: Polytope, clearance: float) -> np.ndarray | None:
+    """Smallest push of piece ``qa`` in the table plane (m, (2,)) after which its shadow and ``qb``'s
+    lie ``clearance`` apart on one horizontal axis; None if they already do."""
+    cross = np.cross(qa.edges[:, None, :], qb.edges[None, :, :]).reshape(-1, 3)
+    axes = np.concatenate([qa.normals, qb.normals, cross])[:, :2]
+    norm = np.linalg.norm(axes, axis=1)
+    axes = np.unique(np.round(axes[norm > 1e-3] / norm[norm > 1e-3, None], 6), axis=0)
+    if not len(axes):
+        return None
+    pa, pb = qa.verts[:, :2] @ axes.T, qb.verts[:, :2] @ axes.T
+    forward = pb.max(0) - pa.min(0) + clearance  # move qa along +axis by this much
+    backward = pa.max(0) - pb.min(0) + clearance  # or along -axis by this much
+    if (np.minimum(forward, backward) <= 0).any():
+        return None
+    k_f, k_b = int(np.argmin(forward)), int(np.argmin(backward))
+    return axes[k_f] * forward[k_f] if forward[k_f] <= backward[k_b] else -axes[k_b] * backward[k_b]
+
+
+def horizontal_push(a: Solid, b: Solid, clearance: float) -> np.ndarray | None:
+    """The push (m, (2,)) of solid ``a`` in the table plane that separates its deepest-overlapping pair
+    of convex pieces from ``b``'s, or None when no pair of polytopes overlaps."""
+    best = None
+    for qa in a.polytopes:
+        for qb in b.polytopes:
+            if qa is None or qb is None:
+                continue
+            lo_a, hi_a, lo_b, hi_b = qa.verts.min(0), qa.verts.max(0), qb.verts.min(0), qb.verts.max(0)
+            if np.any(lo_a - clearance > hi_b) or np.any(lo_b - clearance > hi_a):
+                continue
+            if min(hi_a[2], hi_b[2]) - max(lo_a[2], lo_b[2]) <= RESTING:
+                continue  # one rests on the other (a bin's floor, a stacked base): not a side overlap
+            push = _piece_push(qa, qb, clearance)
+            if push is not None and (best is None or np.hypot(*push) > np.hypot(*best)):
+                best = push
+    return best
 
 
 def separate(
@@ -69,17 +118,22 @@ def separate(
                     continue  # one rests on the other: the support check's business
                 if not _aabb_overlap(a, b, clearance):
                     continue
-                gap = clearance - signed_distance(a, b)
-                if gap > 0:
-                    u = _direction(objects[i].position, objects[j].position)
-                    push[i] += 0.5 * gap * u
-                    push[j] -= 0.5 * gap * u
+                d = signed_distance(a, b)
+                gap = clearance - d
+                if d < -RESTING:
+                    step = horizontal_push(a, b, clearance)
+                    if step is None:
+                        step = gap * _direction(objects[i].position, objects[j].position)
+                    push[i] += 0.5 * step
+                    push[j] -= 0.5 * step
             for center, solid in furniture:
                 if not _aabb_overlap(a, solid, clearance):
                     continue
-                gap = clearance - signed_distance(a, solid)
-                if gap > 0:
-                    push[i] += gap * _direction(objects[i].position, center)
+                d = signed_distance(a, solid)
+                gap = clearance - d
+                if d < -RESTING:
+                    step = horizontal_push(a, solid, clearance)
+                    push[i] += gap * _direction(objects[i].position, center) if step is None else step
         if not push.any():
             break
         moved = False

@@ -125,3 +125,18 @@ def test_cost_guidance_lowers_the_cost(encoding):
     free = cost(*sample(model, train, c, *noise, steps=10)).mean()
     guided = cost(*sample(model, train, c, *noise, steps=10, cost=cost, cost_weight=2.0)).mean()
     assert guided < 0.5 * free, (float(free), float(guided))
+
+
+def test_reach_term_is_near_zero_on_reachable_layouts_and_grows_outside_the_envelope(encoding, tokens):
+    from scenegen.check.geometry import robot_geometry
+    from scenegen.schema.condition import ROBOT_POSES
+
+    rows, objects, scene = tokens
+    shoulder = tuple(float(v) for v in robot_geometry(tuple(ROBOT_POSES["home"]))[1])
+    cost = SceneCost(encoding, shoulder=shoulder)
+    reach = cost.terms(objects, scene)["reach"]
+    # every reference target passed the reachability check (0.25-0.95 m); the term aims 3 cm inside it
+    assert float((reach < 0.03).float().mean()) > 0.97, float(reach.max())
+    far = objects.clone()
+    far[:, :, encoding.xyz_cols.start] = 0.9 / XY_SCALE  # every object 0.9 m in front of the table centre
+    assert (cost.terms(far, scene)["reach"] > 0.3).float().mean() > 0.9

@@ -51,6 +51,10 @@ def test_proposals_depend_only_on_request_seed_and_index(recipe: Path):
     batch = proposer.propose(config.condition, [0, 1, 2, 3], seed=7)
     again = proposer.propose(config.condition, [3, 2], seed=7)
     assert batch[3] == again[0] and batch[2] == again[1]
+    walk = proposer.propose(config.condition, range(20), seed=7)  # groups of 8 sampled together
+    fresh = PROPOSERS["diffusion"](config.proposer, load_catalog())
+    assert fresh.propose(config.condition, [13, 9], seed=7) == [walk[13], walk[9]]
+    assert fresh.propose(config.condition, [17], seed=7) == [walk[17]]
     assert batch[0] != batch[1]
     for p in batch:
         target = next(o for o in p.objects if o.name == p.target)
@@ -115,7 +119,7 @@ def test_sweep_writes_its_table_plot_and_numbers(recipe: Path, tmp_path: Path):
     assert main([*args, "--out", str(out), "--quiet"]) == 0
     result = json.loads((out / "sweep.json").read_text())
     cells = {c["cell"]: c for c in result["cells"]}
-    assert list(cells) == ["null", "w=0", "w=0 +cost", "w=2", "w=2 +cost"]
+    assert list(cells) == ["null", "null +cost", "w=0", "w=0 +cost", "w=2", "w=2 +cost"]
     assert (
         set(result["targets"]) == {"on_floor"} and result["targets"]["on_floor"] in load_catalog().categories
     )
@@ -126,10 +130,15 @@ def test_sweep_writes_its_table_plot_and_numbers(recipe: Path, tmp_path: Path):
         passed = c["accepted"] + c["rejections"].get("condition_unmet", 0) * 3
         assert c["pass_rate"] == pytest.approx(passed / 3)
         assert c["cpu_s_per_proposal"] > 0 and c["proposals_per_s"] > 0
-    assert cells["null"]["adherence"] in (None, 1.0)  # nothing is required of the null condition
+    for null in ("null", "null +cost"):
+        assert cells[null]["adherence"] in (None, 1.0)  # nothing is required of the null condition
     assert set(cells["null"]["tag_rates"]) == set(cells["null"]["reference_rates"])
     table = (out / "sweep.md").read_text()
-    assert table.startswith("| cell |") and table.count("\n") == 2 + 5
+    summary, per_request = table.split("\n\naccepted / proposals (adherence) per request:\n\n")
+    assert summary.startswith("| cell |") and summary.count("\n") == 1 + 6
+    assert per_request.splitlines()[2].startswith("| retrieve ") and per_request.count("\n") == 2 + 1
+    for c in cells.values():
+        assert sum(r["accepted"] for r in c["requests"]) == c["accepted"]
     assert (out / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -50,7 +50,7 @@ def test_max_shift_bounds_the_push_and_leaves_the_rest_to_the_check(catalog):
     b = place(catalog, "b", "soda_can", 0.005, 0.0)
     after = separate(proposal([a, b]), catalog, max_shift=0.004)
     for o, p in zip((a, b), after.objects, strict=True):
-        assert math.dist(o.position, p.position) <= 0.004 + 1e-9
+        assert math.dist(o.position, p.position) <= 0.004 + 2e-6  # positions are rounded to 1 um
     assert not collision(after, catalog).passed
 
 
