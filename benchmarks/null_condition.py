@@ -45,9 +45,16 @@ def main() -> int:
     parser.add_argument("--generator", type=Path, default=Path("pipelines/demo.yaml"))
     parser.add_argument("--reference", type=Path, default=Path("assets/reference/reference.parquet"))
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/null_condition.json"))
+    parser.add_argument(
+        "--cost-weight",
+        type=float,
+        help="cost guidance of the null samples (default: the generator recipe's)",
+    )
     args = parser.parse_args()
 
     proposer = {**yaml.safe_load(args.generator.read_text())["proposer"], "unconditional": True}
+    if args.cost_weight is not None:
+        proposer["cost_weight"] = args.cost_weight
     config = load_pipeline(
         args.recipe,
         {"name": "null_condition", "n": args.n, "seed": args.seed, "render": False, "proposer": proposer},

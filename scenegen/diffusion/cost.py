@@ -4,8 +4,8 @@ Soft versions of what the checks and predicates decide, in metres, so that their
 sample toward a valid scene that holds the request. Discrete fields enter as probabilities (presence
 by a sigmoid, asset and support by a softmax), objects as bounding circles of their footprint.
 
-- ``penetration``: sum over pairs of present objects at about the same height of the overlap of
-  their footprint circles;
+- ``penetration``: sum over pairs of present objects at about the same height, neither stacked on
+  another, of the overlap of their footprint circles;
 - ``table_bounds``: how far the footprint of an object on the table leaves the table top;
 - ``robot_clearance``: overlap of footprints with a keep-out disc around the robot's base column;
 - ``reach`` (when the shoulder position is given): how far the flagged target's centre lies outside
@@ -101,7 +101,9 @@ class SceneCost:
         diff = xy[:, :, None] - xy[:, None]
         dist = (diff.pow(2).sum(-1) + 1e-9).sqrt()
         same_level = torch.exp(-((z[:, :, None] - z[:, None]) / 0.05).pow(2))
-        pair = present[:, :, None] * present[:, None] * same_level
+        # a stacked object overlaps its base's footprint by design: pairs with one are left out
+        loose = present * (1 - support_p[..., SUPPORTS.index("stacked")])
+        pair = loose[:, :, None] * loose[:, None] * same_level
         pair = pair * (1 - torch.eye(e.slots))  # no self pairs
         overlap = torch.relu(radius[:, :, None] + radius[:, None] - dist)
         terms = {"penetration": 0.5 * (pair * overlap).sum((1, 2))}

@@ -2,7 +2,7 @@
 for the null condition and for each guidance weight w, with cost guidance off and on.
 
 Cells: ``null`` (the model's own distribution; the null condition, no tag required; with and
-without the cost's feasibility terms) and, for each w
+without the cost's feasibility terms; as many proposals as a guided cell) and, for each w
 and cost weight, one request per rare tag, "TASK the TARGET TAG", with TARGET the category under
 which the held-out reference holds that tag most often. Every cell proposes the same indices with
 the same seed, so cells differ by their settings, not by their noise (common random numbers).
@@ -18,7 +18,8 @@ Per cell (pooled over its requests):
 - ``diversity``: mean pairwise distance of the accepted layouts' standardised features over that of
   the matched reference layouts (1 = as spread out as the reference);
 - ``projection_m``: mean distance decoding and separating moved an object (m);
-- ``proposals_per_s``: proposals sampled per second of the sampler (this process, one thread);
+- ``proposals_per_s``: proposals per CPU-second of the proposer (sampling, decoding and separating;
+  this process, one thread);
 - ``cpu_s_per_proposal``: sampler + check + build + settle + tag seconds per proposal.
 
 The check and settle stages run in a pool of ``workers`` (the pipeline's own), the sampler here.
@@ -49,6 +50,7 @@ class Cell:
     guidance: float | None  # None: the null condition
     cost_weight: float
     requests: tuple[Condition, ...]
+    size: int = 1  # proposals per request: this many times the sweep's --proposals
 
 
 @dataclass
@@ -88,9 +90,10 @@ def make_cells(
         for tag, target in targets.items()
     )
     null = (base.model_copy(update={"tags": {}, "text": None}),)
-    cells = [Cell("null", None, 0.0, null)]
+    size = len(requests)  # as many null proposals as a guided cell has
+    cells = [Cell("null", None, 0.0, null, size)]
     if cost_weight > 0:
-        cells.append(Cell("null +cost", None, cost_weight, null))
+        cells.append(Cell("null +cost", None, cost_weight, null, size))
     for w in weights:
         cells.append(Cell(f"w={w:g}", w, 0.0, requests))
         if cost_weight > 0:
@@ -133,7 +136,7 @@ def run_sweep(
             if c == 0:
                 proposer.decoded(cell.requests[0], 0, config.seed)  # warm-up, not timed: lazy torch set-up
             for r, request in enumerate(cell.requests):
-                for index in range(proposals):
+                for index in range(proposals * cell.size):
                     t0 = time.process_time()
                     decoded = proposer.decoded(request, index, config.seed)
                     results[c].sample_seconds += time.process_time() - t0
@@ -141,7 +144,7 @@ def run_sweep(
                     owner.append((c, r))
                     yield decoded.proposal
 
-    total = sum(len(cell.requests) for cell in cells) * proposals
+    total = sum(len(cell.requests) * cell.size for cell in cells) * proposals
     bar = tqdm(total=total, desc="sweep", unit="proposal", disable=not progress, dynamic_ncols=True)
     outcomes = ordered_outcomes(stream(), base, workers, export=False)
     try:
@@ -298,11 +301,11 @@ def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
     the null condition (with cost, if swept) as a dashed grey line. PNG bytes."""
     import cv2
 
-    panels = (
-        ("pass check + settle", "pass_rate", (0.0, 1.0)),
-        ("adherence after settling", "adherence", (0.0, 1.0)),
-        ("C2ST vs held-out (0.5 = indistinguishable)", "c2st", (0.4, 1.0)),
-        ("proposals per second (sampler)", "proposals_per_s", None),
+    panels = (  # title, key, y range (None: from the data), draw the null condition
+        ("pass check + settle", "pass_rate", (0.0, 1.0), True),
+        ("adherence after settling", "adherence", (0.0, 1.0), False),
+        ("C2ST vs held-out (0.5 = indistinguishable)", "c2st", (0.4, 1.0), True),
+        ("proposals per second (sample, decode, separate)", "proposals_per_s", None, True),
     )
     w, h = size
     image = np.full((h, w, 3), 255, np.uint8)
@@ -317,9 +320,9 @@ def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
         x = w - 420 + i * 140
         cv2.line(image, (x, 18), (x + 24, 18), _COLOURS[key], 2)
         cv2.putText(image, text, (x + 30, 23), 0, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    pw, ph = (w - 120) // 2, (h - 140) // 2
-    for p, (title, key, limits) in enumerate(panels):
-        left, top = 70 + (p % 2) * (pw + 50), 60 + (p // 2) * (ph + 60)
+    pw, ph = (w - 150) // 2, (h - 140) // 2
+    for p, (title, key, limits, with_null) in enumerate(panels):
+        left, top = 60 + (p % 2) * (pw + 80), 60 + (p // 2) * (ph + 60)
         values = [r[key] for r in rows if r[key] is not None]
         lo, hi = limits or (0.0, max(values + [1.0]) * 1.1)
         cv2.rectangle(image, (left, top), (left + pw, top + ph), (0, 0, 0), 1)
@@ -339,7 +342,7 @@ def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
         for wv in weights:
             x, _ = px(wv, lo)
             cv2.putText(image, f"{wv:g}", (x - 8, top + ph + 16), 0, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        if null is not None and null[key] is not None:
+        if with_null and null is not None and null[key] is not None:
             _, y = px(weights[0], null[key])
             for x in range(left, left + pw, 12):
                 cv2.line(image, (x, y), (min(x + 6, left + pw), y), _COLOURS["null"], 1)

@@ -140,3 +140,17 @@ def test_reach_term_is_near_zero_on_reachable_layouts_and_grows_outside_the_enve
     far = objects.clone()
     far[:, :, encoding.xyz_cols.start] = 0.9 / XY_SCALE  # every object 0.9 m in front of the table centre
     assert (cost.terms(far, scene)["reach"] > 0.3).float().mean() > 0.9
+
+
+def test_a_stacked_object_does_not_count_as_penetrating_its_base(encoding, tokens):
+    rows, objects, scene = tokens
+    cost = SceneCost(encoding)
+    stacked = [
+        k
+        for k, r in enumerate(rows)
+        if any(o["support"] in {p["name"] for p in r["objects"]} for o in r["objects"])
+    ]
+    assert stacked
+    table_only = [k for k, r in enumerate(rows) if all(o["support"] == "table" for o in r["objects"])]
+    term = cost.terms(objects, scene)["penetration"]
+    assert term[stacked].mean() < 0.01 and term[table_only].mean() < 0.01  # reference layouts do not overlap
