@@ -136,7 +136,7 @@ def test_unknown_proposer_kind_lists_the_valid_ones(tmp_path: Path, capsys: pyte
     with pytest.raises(SystemExit) as exit_info:
         main(["generate", str(REFERENCE), "--proposer", "magic", "--out", str(tmp_path / "never")])
     assert exit_info.value.code == USAGE_ERROR
-    assert "choose from 'procedural', 'targeted'" in capsys.readouterr().err
+    assert "choose from 'diffusion', 'procedural', 'targeted'" in capsys.readouterr().err
     with pytest.raises(
         ConfigError, match="--proposer magic: unknown kind; valid: procedural, targeted, diffusion"
     ):
