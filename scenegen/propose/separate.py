@@ -83,6 +83,19 @@ def horizontal_push(a: Solid, b: Solid, clearance: float) -> np.ndarray | None:
     return best
 
 
+def _pair_push(a: Solid, b: Solid, clearance: float, a_at, b_at) -> np.ndarray | None:
+    """The push (m, (2,)) that takes ``a`` out of ``b``, or None when they do not overlap: the
+    pieces' own :func:`horizontal_push`, else the depth plus ``clearance`` along the line from
+    ``b_at`` to ``a_at``."""
+    if not _aabb_overlap(a, b, clearance):
+        return None
+    d = signed_distance(a, b)
+    if d >= -RESTING:
+        return None
+    step = horizontal_push(a, b, clearance)
+    return (clearance - d) * _direction(a_at, b_at) if step is None else step
+
+
 def separate(
     proposal: SceneProposal,
     catalog: Catalog,
@@ -116,24 +129,14 @@ def separate(
                 b = solids[j]
                 if objects[i].support == names[j] or objects[j].support == names[i]:
                     continue  # one rests on the other: the support check's business
-                if not _aabb_overlap(a, b, clearance):
-                    continue
-                d = signed_distance(a, b)
-                gap = clearance - d
-                if d < -RESTING:
-                    step = horizontal_push(a, b, clearance)
-                    if step is None:
-                        step = gap * _direction(objects[i].position, objects[j].position)
+                step = _pair_push(a, b, clearance, objects[i].position, objects[j].position)
+                if step is not None:
                     push[i] += 0.5 * step
                     push[j] -= 0.5 * step
             for center, solid in furniture:
-                if not _aabb_overlap(a, solid, clearance):
-                    continue
-                d = signed_distance(a, solid)
-                gap = clearance - d
-                if d < -RESTING:
-                    step = horizontal_push(a, solid, clearance)
-                    push[i] += gap * _direction(objects[i].position, center) if step is None else step
+                step = _pair_push(a, solid, clearance, objects[i].position, center)
+                if step is not None:
+                    push[i] += step
         if not push.any():
             break
         moved = False
