@@ -20,8 +20,6 @@ import json
 import sys
 from pathlib import Path
 
-import yaml
-
 from scenegen.config import load_pipeline
 from scenegen.pipeline import run_batch
 from scenegen.realism import c2st, feature_matrix, load_rows, mmd, record_row
@@ -52,7 +50,8 @@ def main() -> int:
     )
     args = parser.parse_args()
 
-    proposer = {**yaml.safe_load(args.generator.read_text())["proposer"], "unconditional": True}
+    generator = load_pipeline(args.generator).proposer
+    proposer = {**generator.model_dump(mode="json"), "unconditional": True}
     if args.cost_weight is not None:
         proposer["cost_weight"] = args.cost_weight
     config = load_pipeline(

@@ -47,14 +47,12 @@ import platform  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import yaml  # noqa: E402
-
 from scenegen.assets.catalog import load_catalog  # noqa: E402
 from scenegen.config import load_pipeline  # noqa: E402
+from scenegen.diffusion.sweep import best_targets  # noqa: E402
 from scenegen.pipeline import run_batch  # noqa: E402
 from scenegen.propose.base import PROPOSERS  # noqa: E402
 from scenegen.realism import c2st, feature_matrix, load_rows, record_row  # noqa: E402
-from scenegen.reference import read_reference  # noqa: E402
 from scenegen.schema.condition import RARE_TAGS  # noqa: E402
 from scenegen.schema.scene import SceneRecord  # noqa: E402
 from scenegen.store import measure_stored_scene  # noqa: E402
@@ -108,10 +106,8 @@ def run(
     }
 
 
-def reference_rates(path: Path) -> dict[str, dict[str, tuple[int, int]]]:
+def reference_rates(rows: list[dict]) -> dict[str, dict[str, tuple[int, int]]]:
     """tag -> target category -> (reference layouts holding the tag, layouts with that target)."""
-    table, _ = read_reference(path)
-    rows = table.select(["target_category", *(f"tag_{t}" for t in RARE_TAGS)]).to_pylist()
     categories = sorted({r["target_category"] for r in rows})
     rates = {}
     for tag in RARE_TAGS:
@@ -120,11 +116,6 @@ def reference_rates(path: Path) -> dict[str, dict[str, tuple[int, int]]]:
             same = [r for r in rows if r["target_category"] == category]
             rates[tag][category] = (sum(r[f"tag_{tag}"] for r in same), len(same))
     return rates
-
-
-def best_target(rates: dict[str, tuple[int, int]]) -> str:
-    """The target category under which the tag is most frequent in the reference set."""
-    return max(sorted(rates), key=lambda c: rates[c][0] / max(rates[c][1], 1))
 
 
 def mix(rejections: dict, proposals: int) -> str:
@@ -161,12 +152,12 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/rare_case_yield.json"))
     args = parser.parse_args()
 
-    rates = reference_rates(args.reference)
     reference_rows = load_rows(args.reference, None)
-    generator = yaml.safe_load(args.generator.read_text())["proposer"]
-    if generator.get("kind") != "diffusion":
-        parser.error(f"--generator {args.generator}: proposer.kind must be diffusion")
+    rates = reference_rates(reference_rows)
     generator_config = load_pipeline(args.generator)
+    if generator_config.proposer.kind != "diffusion":
+        parser.error(f"--generator {args.generator}: proposer.kind must be diffusion")
+    generator = generator_config.proposer.model_dump(mode="json")
     checkpoint = generator_config.proposer.checkpoint_dir()
     # Load the checkpoint and run torch's lazy set-up once, outside every timed run (a one-off per
     # process, like importing MuJoCo; training is accounted for separately, in the break-even).
@@ -176,7 +167,7 @@ def main() -> None:
     calibrations: dict[str, dict] = {}
     rows = []
     for tag in args.tags:
-        target = best_target(rates[tag]) if args.target == "auto" else args.target
+        target = best_targets(reference_rows, [tag])[tag] if args.target == "auto" else args.target
         if target not in calibrations:
             c = run(
                 args.recipe, f"retrieve the {target}", "procedural", 10**6, args.calibration, args.seed, None
