@@ -13,10 +13,12 @@ scene token (``scene_width``):
     (intensity - 0.6) / 0.6, casts shadow
 
 Decoding snaps every object onto a stable resting pose of its asset at its support's height
-(objects on the table, floor and furniture first, then stacked ones on the nearest object below
-whose top holds them) and reports how far that moved its centre (``projection_distance``): the
-decoded height against the height the support and resting pose dictate. Encoding the settled layout of a
-stored or reference scene takes each object's nearest resting pose to its settled orientation.
+(objects on the table, floor and furniture first, then stacked ones onto the inner half of the top
+of the nearest base within ``STACK_SNAP``, as the procedural sampler stacks them) and reports how far
+that moved its centre (``projection_distance``): the decoded height against the height the support
+and resting pose dictate, and for a stacked object the horizontal move onto its base. Encoding the
+settled layout of a stored or reference scene takes each object's nearest resting pose to its settled
+orientation.
 Pure numpy; no MuJoCo, no torch.
 """
 
@@ -31,7 +33,7 @@ import numpy as np
 from scenegen import world
 from scenegen.assets.catalog import Catalog
 from scenegen.propose.base import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
-from scenegen.propose.procedural import FURNITURE_HOME
+from scenegen.propose.procedural import FURNITURE_HOME, STACK_BASES
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,
@@ -53,6 +55,15 @@ AMBIENT_CENTRE, AMBIENT_SCALE = 0.15, 0.15
 TINT_SCALE = 0.2
 INTENSITY_CENTRE, INTENSITY_SCALE = 0.6, 0.6
 LIGHT_WIDTH = 9
+STACK_SNAP = 0.10  # m: an object decoded as stacked moves onto the nearest base's top within this
+
+
+def _onto_inner_half(top: world.Surface, xy: np.ndarray) -> np.ndarray:
+    """``xy`` moved (in the top's yaw frame) onto the inner half of ``top``, where the procedural
+    sampler puts the centre of a stacked object; unchanged when already there."""
+    local = np.clip(top.local_xy(xy), -np.asarray(top.half) / 2, np.asarray(top.half) / 2)
+    c, s = math.cos(top.yaw), math.sin(top.yaw)
+    return np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]]) + top.center
 
 
 def _onehot(index: int, n: int) -> np.ndarray:
@@ -200,18 +211,21 @@ class SceneEncoding:
             yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])
             support = support_of[s]
             surface = surfaces.get(support, surfaces["table"])
+            moved = 0.0
             if support == "stacked":
                 base = self._base_under(xy, placed.values())
-                support, surface = (
-                    (base.name, world.object_top_surface(self.catalog, base))
-                    if base
-                    else (
-                        "table",
-                        surfaces["table"],
-                    )
-                )
+                if base is None:
+                    support, surface = "table", surfaces["table"]
+                else:
+                    support, surface = base.name, world.object_top_surface(self.catalog, base)
+                    xy_on = _onto_inner_half(surface, xy)
+                    moved = float(np.hypot(*(xy_on - xy)))
+                    xyz = np.array([xy_on[0], xy_on[1], xyz[2]])
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
             placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
+            if moved:  # the snap is vertical, the move onto the base horizontal
+                total = round(math.hypot(placed[s].projection_distance, moved), 6)
+                placed[s] = placed[s].model_copy(update={"projection_distance": total})
             projection[s] = placed[s].projection_distance
         if own_target:
             category = self.catalog.get(asset_of[target]).category
@@ -247,16 +261,19 @@ class SceneEncoding:
         return target, asset_of
 
     def _base_under(self, xy: np.ndarray, placed) -> ObjectPlacement | None:
-        """The placed object whose top is nearest (xy) to ``xy`` among those whose top holds it."""
-        best, best_d = None, math.inf
-        for o in placed:
-            top = world.object_top_surface(self.catalog, o)
-            if top.margin(xy) < -0.02:
-                continue
-            d = float(np.hypot(*(np.asarray(top.center) - xy)))
-            if d < best_d:
-                best, best_d = o, d
-        return best
+        """The base for an object decoded as stacked at ``xy``, among the placed objects that may
+        carry another (``STACK_BASES``, not on the floor, as the procedural sampler stacks): of those
+        whose top holds ``xy`` (2 cm tolerance), the one whose top centre is nearest; else the one
+        whose top is nearest, if within ``STACK_SNAP``; else None."""
+        bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
+        tops = [world.object_top_surface(self.catalog, o) for o in bases]
+        holding = [
+            (np.hypot(*(np.asarray(t.center) - xy)), k) for k, t in enumerate(tops) if t.margin(xy) >= -0.02
+        ]
+        if holding:
+            return bases[min(holding)[1]]
+        near = [(-t.margin(xy), k) for k, t in enumerate(tops) if t.margin(xy) >= -STACK_SNAP]
+        return bases[min(near)[1]] if near else None
 
     def _furniture(self, scene: np.ndarray) -> tuple[FurniturePlacement, ...]:
         out = []

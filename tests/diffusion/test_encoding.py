@@ -10,7 +10,7 @@ import pytest
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
-from scenegen.diffusion.encoding import SLOTS, SceneEncoding
+from scenegen.diffusion.encoding import SLOTS, STACK_SNAP, XY_SCALE, SceneEncoding
 from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.realism import load_rows
 from scenegen.schema.condition import Condition
@@ -106,3 +106,37 @@ def test_the_target_is_an_object_of_the_requested_category(encoding, rows):
     other = encoding.decode(tokens, scene, Condition(target="bottle"), DEFAULT_CAMERAS).proposal
     target = next(o for o in other.objects if o.name == other.target)
     assert target.category == "bottle"
+
+
+def test_an_object_decoded_as_stacked_moves_onto_the_nearest_base(encoding, rows):
+    """A stacked token a few centimetres off its base lands on the inner half of the base's top (the
+    move counted in its projection distance); one farther than STACK_SNAP from any base stays on
+    the table."""
+    catalog = load_catalog()
+    row, slot = next(
+        (r, k)
+        for r in rows
+        for k, o in enumerate(r["objects"])
+        if o["support"] in {p["name"] for p in r["objects"]}
+    )
+    tokens, scene = encoding.encode_row(row)
+    objects = decode(encoding, tokens, scene, row).proposal.objects
+    base = next(o for o in objects if o.name == objects[slot].support)
+    top = world.object_top_surface(catalog, base)
+    away = np.asarray(objects[slot].position[:2]) - top.center
+    away = away / np.hypot(*away) if np.hypot(*away) > 1e-9 else np.array([1.0, 0.0])
+
+    def shifted(distance: float):
+        moved = tokens.copy()
+        moved[slot, encoding.xyz_cols.start : encoding.xyz_cols.start + 2] += away * distance / XY_SCALE
+        return decode(encoding, moved, scene, row)
+
+    near = shifted(max(top.half) + 0.05)
+    snapped = near.proposal.objects[slot]
+    assert snapped.support == base.name
+    local = np.abs(top.local_xy(snapped.position[:2]))
+    assert np.all(local <= np.asarray(top.half) / 2 + 1e-5)  # positions are stored to the micrometre
+    assert near.projection[slot] >= 0.05
+
+    far = shifted(max(top.half) + STACK_SNAP + 0.3).proposal.objects[slot]
+    assert far.support != base.name
