@@ -58,6 +58,12 @@ def main() -> int:
         args.recipe,
         {"name": "null_condition", "n": args.n, "seed": args.seed, "render": False, "proposer": proposer},
     )
+    existing = sum(1 for _ in args.out.glob("scene_*/scene.json")) if args.out.is_dir() else 0
+    if existing:
+        print(
+            f"resuming the batch in {args.out}: {existing} scenes are already there, made by the code "
+            "that ran then; delete the folder (or pass another --out) to measure the current code"
+        )
     summary = run_batch(config, args.out, workers=args.workers)
     records = [
         SceneRecord.model_validate_json(p.read_text()) for p in sorted(args.out.glob("scene_*/scene.json"))
