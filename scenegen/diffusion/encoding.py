@@ -217,7 +217,7 @@ class SceneEncoding:
                 if base is None:
                     support, surface = "table", surfaces["table"]
                 else:
-                    support, surface = base.name, world.object_top_surface(self.catalog, base)
+                    support, surface = base[0].name, base[1]
                     xy_on = _onto_inner_half(surface, xy)
                     moved = float(np.hypot(*(xy_on - xy)))
                     xyz = np.array([xy_on[0], xy_on[1], xyz[2]])
@@ -260,20 +260,19 @@ class SceneEncoding:
             asset_of[target] = self.assets[max(allowed, key=lambda i: scores[i])]
         return target, asset_of
 
-    def _base_under(self, xy: np.ndarray, placed) -> ObjectPlacement | None:
+    def _base_under(self, xy: np.ndarray, placed) -> tuple[ObjectPlacement, world.Surface] | None:
         """The base for an object decoded as stacked at ``xy``, among the placed objects that may
         carry another (``STACK_BASES``, not on the floor, as the procedural sampler stacks): of those
         whose top holds ``xy`` (2 cm tolerance), the one whose top centre is nearest; else the one
-        whose top is nearest, if within ``STACK_SNAP``; else None."""
+        whose top is nearest, if within ``STACK_SNAP``; else None. Returns the base and its top."""
         bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
         tops = [world.object_top_surface(self.catalog, o) for o in bases]
         holding = [
             (np.hypot(*(np.asarray(t.center) - xy)), k) for k, t in enumerate(tops) if t.margin(xy) >= -0.02
         ]
-        if holding:
-            return bases[min(holding)[1]]
         near = [(-t.margin(xy), k) for k, t in enumerate(tops) if t.margin(xy) >= -STACK_SNAP]
-        return bases[min(near)[1]] if near else None
+        k = min(holding or near, default=(None, None))[1]
+        return None if k is None else (bases[k], tops[k])
 
     def _furniture(self, scene: np.ndarray) -> tuple[FurniturePlacement, ...]:
         out = []
