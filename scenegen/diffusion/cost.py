@@ -70,13 +70,16 @@ class SceneCost:
             asset = encoding.catalog.get(name)
             radii.append(max(footprint_radius(asset, p) for p in range(len(asset.resting_poses))))
         self.radii = torch.tensor(radii, dtype=torch.float32)
-        # upright[a, p]: resting pose p of asset a is upright (decoding clamps p to the asset's last pose)
+        # upright[a, c]: pose column c of asset a is an upright resting pose; lacks[a, c]: asset a has
+        # no pose in column c (decoding never picks it)
         upright = torch.zeros(len(encoding.assets), encoding.max_poses)
+        lacks = torch.ones(len(encoding.assets), encoding.max_poses, dtype=torch.bool)
         for a, name in enumerate(encoding.assets):
             poses = encoding.catalog.get(name).resting_poses
-            for p in range(encoding.max_poses):
-                upright[a, p] = float(poses[min(p, len(poses) - 1)].upright)
-        self.upright = upright
+            for c, p in enumerate(encoding.pose_order[name]):
+                upright[a, c] = float(poses[p].upright)
+                lacks[a, c] = False
+        self.upright, self.lacks = upright, lacks
         self.required = tuple(required)
         self.shoulder = None if shoulder is None else torch.tensor(shoulder, dtype=torch.float32)
         self.weights = {
@@ -137,8 +140,9 @@ class SceneCost:
             not_stacked = 1 - support_p[..., SUPPORTS.index("stacked")]
             terms["stacked"] = (target_p * not_stacked).sum(1) * 0.1
         if "toppled" in self.required:
-            pose_p = torch.softmax(SHARPNESS * objects[..., e.pose_cols], dim=-1)  # (B, K, P)
-            upright = torch.einsum("bka,ap,bkp->bk", asset_p, self.upright, pose_p)
+            logits = (SHARPNESS * objects[..., e.pose_cols])[:, :, None]  # (B, K, 1, P)
+            pose_p = torch.softmax(logits.masked_fill(self.lacks, -torch.inf), dim=-1)  # (B, K, A, P)
+            upright = torch.einsum("bka,ap,bkap->bk", asset_p, self.upright, pose_p)
             terms["toppled"] = (target_p * upright).sum(1) * 0.1
         if "under_overhang" in self.required:
             terms["under_overhang"] = self._under_overhang(scene, xy, radius, support_p, target_p) * 0.1

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from scenegen.assets.catalog import load_catalog
 from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
-from scenegen.diffusion.encoding import SceneEncoding
+from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
 from scenegen.realism import load_rows
 from scenegen.schema.condition import RARE_TAGS
@@ -177,6 +177,7 @@ def train(
         "format": CHECKPOINT_FORMAT,
         "denoiser": denoiser_config.model_dump(),
         "encoding": {
+            "version": ENCODING_VERSION,
             "slots": encoding.slots,
             "assets": list(encoding.assets),
             "categories": list(catalog.categories),

@@ -73,7 +73,7 @@ class DiffusionProposer:
     """Samples whole scenes from the denoiser for a condition."""
 
     def __init__(self, settings: DiffusionSettings, catalog: Catalog):
-        from scenegen.diffusion.encoding import SceneEncoding
+        from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 
         self.settings = settings
         self.catalog = catalog
@@ -81,6 +81,12 @@ class DiffusionProposer:
         self.encoding = SceneEncoding(catalog)
         if self.config["encoding"]["assets"] != list(self.encoding.assets):
             raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
+        version = self.config["encoding"].get("version", 1)
+        if version != ENCODING_VERSION:
+            raise ValueError(
+                f"{settings.checkpoint}: made with scene encoding v{version}, this scenegen reads "
+                f"v{ENCODING_VERSION}; retrain it (scenegen train --out DIR, see docs/generator.md)"
+            )
         self._group_key: tuple | None = None
         self._group: list = []
 

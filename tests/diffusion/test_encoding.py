@@ -85,11 +85,29 @@ def test_noisy_tokens_decode_onto_resting_poses_and_report_the_projection(encodi
         assert max(decoded.projection) > 1e-3  # the height noise (0.05 x 0.5 m) was projected away
 
 
-def test_a_scene_without_objects_is_an_error(encoding, rows):
-    tokens, scene = encoding.encode_row(rows[0])
-    tokens[:, 0] = -1.0
-    with pytest.raises(ValueError, match="no object"):
-        decode(encoding, tokens, scene, rows[0])
+def test_the_object_count_decides_how_many_slots_are_decoded(encoding, rows):
+    row = next(r for r in rows if len(r["objects"]) >= 4)
+    tokens, scene = encoding.encode_row(row)
+    n = len(row["objects"])
+    assert np.argmax(scene[encoding.count_cols]) == n - 1
+    tokens[:, 0] = np.linspace(-0.5, -0.9, SLOTS)  # no slot says present: the count still holds
+    scene[encoding.count_cols] = -1.0
+    scene[encoding.count_cols.start + 1] = 1.0  # two objects: the two most present slots
+    first = encoding.catalog.get(row["objects"][0]["asset"]).category  # a target among the two kept
+    objects = encoding.decode(tokens, scene, Condition(target=first), DEFAULT_CAMERAS).proposal.objects
+    assert [o.name for o in objects] == [o["name"] for o in row["objects"][:2]]
+    tokens[:, 0] = 1.0  # every slot says present; the count keeps n (empty slots decode too)
+    scene[encoding.count_cols] = -1.0
+    scene[encoding.count_cols.start + SLOTS - 1] = 1.0
+    assert len(decode(encoding, tokens, scene, row).proposal.objects) == SLOTS
+
+
+def test_pose_column_zero_is_upright_for_every_asset_that_has_an_upright_pose(encoding):
+    for asset in encoding.catalog.assets:
+        order = encoding.pose_order[asset.name]
+        assert sorted(order) == list(range(len(asset.resting_poses)))
+        if any(p.upright for p in asset.resting_poses):
+            assert asset.resting_poses[order[0]].upright, asset.name
 
 
 def test_more_objects_than_slots_is_an_error(encoding, rows):
