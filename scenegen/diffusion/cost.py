@@ -2,16 +2,19 @@
 
 Soft versions of what the checks and predicates decide, in metres, so that their gradient can bend a
 sample toward a valid scene that holds the request. Discrete fields enter as probabilities (presence
-by a sigmoid, asset and support by a softmax), objects as bounding circles of their footprint.
+by a sigmoid, asset, resting pose and support by a softmax), objects as discs whose radius is the
+geometric mean of the footprint's half extents in that pose (the ellipse in its bounding box: a
+plate's radius, a lying knife's 3 cm rather than its 10 cm half length; real overlaps left after
+decoding are pushed apart by propose/separate.py).
 
 - ``penetration``: sum over pairs of present objects at about the same height, neither stacked on
-  another, of the overlap of their footprint circles;
-- ``table_bounds``: how far the footprint of an object on the table leaves the table top;
-- ``robot_clearance``: overlap of footprints with a keep-out disc around the robot's base column;
+  another, of the overlap of their discs;
+- ``table_bounds``: how far the disc of an object on the table leaves the table top;
+- ``robot_clearance``: overlap of the discs with a keep-out disc around the robot's base column;
 - ``reach`` (when the shoulder position is given): how far the flagged target's centre lies outside
   the arm's envelope, 3 cm inside the reachability check's [0.25, 0.95] m around the shoulder
   (weighted by the probability that the target is not on the floor, which is exempt);
-- soft required predicates, each on the slot the sample flags as target: ``near_edge`` (footprint
+- soft required predicates, each on the slot the sample flags as target: ``near_edge`` (disc
   beyond 3 cm from the nearest side edge), ``clutter`` (missing neighbours within 0.2 m),
   ``on_floor`` (probability that its support is not the floor), ``stacked`` (that it is not stacked),
   ``toppled`` (that its resting pose is upright), ``under_overhang`` (that no shelf is present, or
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from scenegen import world
@@ -44,7 +48,8 @@ from scenegen.diffusion.encoding import (
     XY_SCALE,
     SceneEncoding,
 )
-from scenegen.propose.procedural import FURNITURE_HOME, footprint_radius
+from scenegen.check.geometry import quat_to_matrix
+from scenegen.propose.procedural import FURNITURE_HOME
 
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column
@@ -52,6 +57,14 @@ SHARPNESS = 8.0  # presence logits are +-1; sigmoid(8 x) is ~0 or ~1 away from 0
 REACH, REACH_MARGIN = (0.25, 0.95), 0.03  # m: CheckSettings.reach_min / reach_max, and a margin
 LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
 SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
+
+
+def disc_radius(asset, pose: int) -> float:
+    """sqrt(a b) (m) for the half extents a, b of the asset's footprint box in resting pose ``pose``."""
+    ext = np.asarray(asset.extents) / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
+    half = np.abs(corners @ quat_to_matrix(asset.resting_poses[pose].quat).T).max(0)
+    return float(np.sqrt(half[0] * half[1]))
 
 
 class SceneCost:
@@ -65,21 +78,17 @@ class SceneCost:
         shoulder: tuple[float, float, float] | None = None,
     ):
         self.encoding = encoding
-        radii = []
-        for name in encoding.assets:
-            asset = encoding.catalog.get(name)
-            radii.append(max(footprint_radius(asset, p) for p in range(len(asset.resting_poses))))
-        self.radii = torch.tensor(radii, dtype=torch.float32)
-        # upright[a, c]: pose column c of asset a is an upright resting pose; lacks[a, c]: asset a has
-        # no pose in column c (decoding never picks it)
-        upright = torch.zeros(len(encoding.assets), encoding.max_poses)
-        lacks = torch.ones(len(encoding.assets), encoding.max_poses, dtype=torch.bool)
+        # per asset a and pose column c: the disc radius, whether the pose is upright, and whether
+        # the asset lacks a pose in that column (decoding never picks it)
+        shape = (len(encoding.assets), encoding.max_poses)
+        radii, upright, lacks = torch.zeros(shape), torch.zeros(shape), torch.ones(shape, dtype=torch.bool)
         for a, name in enumerate(encoding.assets):
-            poses = encoding.catalog.get(name).resting_poses
+            asset = encoding.catalog.get(name)
             for c, p in enumerate(encoding.pose_order[name]):
-                upright[a, c] = float(poses[p].upright)
+                radii[a, c] = disc_radius(asset, p)
+                upright[a, c] = float(asset.resting_poses[p].upright)
                 lacks[a, c] = False
-        self.upright, self.lacks = upright, lacks
+        self.radii, self.upright, self.lacks = radii, upright, lacks
         self.required = tuple(required)
         self.shoulder = None if shoulder is None else torch.tensor(shoulder, dtype=torch.float32)
         self.weights = {
@@ -94,7 +103,9 @@ class SceneCost:
         e = self.encoding
         present = torch.sigmoid(SHARPNESS * objects[..., 0])  # (B, K)
         asset_p = torch.softmax(SHARPNESS * objects[..., e.asset_cols], dim=-1)
-        radius = asset_p @ self.radii  # (B, K) expected footprint radius
+        logits = (SHARPNESS * objects[..., e.pose_cols])[:, :, None]  # (B, K, 1, P)
+        pose_p = torch.softmax(logits.masked_fill(self.lacks, -torch.inf), dim=-1)  # (B, K, A, P)
+        radius = torch.einsum("bka,ap,bkap->bk", asset_p, self.radii, pose_p)  # expected disc radius
         support_p = torch.softmax(SHARPNESS * objects[..., e.support_cols], dim=-1)
         on_table = support_p[..., SUPPORTS.index("table")]
         xyz = objects[..., e.xyz_cols] * XY_SCALE
@@ -140,8 +151,6 @@ class SceneCost:
             not_stacked = 1 - support_p[..., SUPPORTS.index("stacked")]
             terms["stacked"] = (target_p * not_stacked).sum(1) * 0.1
         if "toppled" in self.required:
-            logits = (SHARPNESS * objects[..., e.pose_cols])[:, :, None]  # (B, K, 1, P)
-            pose_p = torch.softmax(logits.masked_fill(self.lacks, -torch.inf), dim=-1)  # (B, K, A, P)
             upright = torch.einsum("bka,ap,bkap->bk", asset_p, self.upright, pose_p)
             terms["toppled"] = (target_p * upright).sum(1) * 0.1
         if "under_overhang" in self.required:
@@ -151,7 +160,7 @@ class SceneCost:
         return terms
 
     def _under_overhang(self, scene, xy, radius, support_p, target_p) -> torch.Tensor:
-        """1 - P(shelf present) x P(target centre under its board, a footprint radius inside its legs)
+        """1 - P(shelf present) x P(target centre under its board, a disc radius inside its legs)
         x P(target not on the shelf), for the flagged target."""
         i = FURNITURE_KINDS.index("shelf")
         present = torch.sigmoid(SHARPNESS * scene[:, 3 * i])

@@ -166,8 +166,6 @@ class DiffusionProposer:
         for k, (index, rng) in enumerate(zip(indices, rngs, strict=True)):
             cameras = jitter_cameras(rng, s.cameras, s.camera_jitter)
             tokens, scene_k = objects[k].numpy().astype(np.float64), scene[k].numpy().astype(np.float64)
-            if not (tokens[:, 0] > 0).any():
-                tokens[int(np.argmax(tokens[:, 0])), 0] = 1.0  # at least the most likely object
             decoded = self.encoding.decode(
                 tokens, scene_k, condition, cameras, index, seed, own_target=s.unconditional
             )
