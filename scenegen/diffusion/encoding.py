@@ -19,9 +19,11 @@ data's 15 %; see docs/generator.md).
 
 Decoding snaps every object onto a stable resting pose of its asset at its support's height
 (objects on the table, floor and furniture first, then stacked ones onto the inner half of the top
-of the nearest base within ``STACK_SNAP``, as the procedural sampler stacks them) and reports how far
+of the nearest base within ``STACK_SNAP``, as the procedural sampler stacks them; a table object
+whose centre is inside the bin's walls goes into the bin, and an object in the bin or on the shelf
+moves in until its footprint circle is inside, the procedural sampler's rule) and reports how far
 that moved its centre (``projection_distance``): the decoded height against the height the support
-and resting pose dictate, and for a stacked object the horizontal move onto its base. Encoding the
+and resting pose dictate, and the horizontal move onto a base or into the furniture. Encoding the
 settled layout of a stored or reference scene takes each object's nearest resting pose to its settled
 orientation.
 Pure numpy; no MuJoCo, no torch.
@@ -38,7 +40,7 @@ import numpy as np
 from scenegen import world
 from scenegen.assets.catalog import Catalog
 from scenegen.propose.base import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
-from scenegen.propose.procedural import FURNITURE_HOME, STACK_BASES
+from scenegen.propose.procedural import FURNITURE_HOME, STACK_BASES, footprint_radius
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,
@@ -64,12 +66,12 @@ LIGHT_WIDTH = 9
 STACK_SNAP = 0.10  # m: an object decoded as stacked moves onto the nearest base's top within this
 
 
-def _onto_inner_half(top: world.Surface, xy: np.ndarray) -> np.ndarray:
-    """``xy`` moved (in the top's yaw frame) onto the inner half of ``top``, where the procedural
-    sampler puts the centre of a stacked object; unchanged when already there."""
-    local = np.clip(top.local_xy(xy), -np.asarray(top.half) / 2, np.asarray(top.half) / 2)
-    c, s = math.cos(top.yaw), math.sin(top.yaw)
-    return np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]]) + top.center
+def _onto(surface: world.Surface, xy: np.ndarray, half: Sequence[float]) -> np.ndarray:
+    """``xy`` moved (in the surface's yaw frame) into the centred region of half extents ``half``;
+    unchanged when already there."""
+    local = np.clip(surface.local_xy(xy), -np.asarray(half), np.asarray(half))
+    c, s = math.cos(surface.yaw), math.sin(surface.yaw)
+    return np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]]) + surface.center
 
 
 def _onehot(index: int, n: int) -> np.ndarray:
@@ -218,26 +220,31 @@ class SceneEncoding:
         for s in order:
             token = tokens[s]
             asset = self.catalog.get(asset_of[s])
-            order = self.pose_order[asset.name]
-            pose = order[int(np.argmax(token[self.pose_cols][: len(order)]))]
+            columns = self.pose_order[asset.name]
+            pose = columns[int(np.argmax(token[self.pose_cols][: len(columns)]))]
             xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, world.TABLE_TOP_Z]
             xy = xyz[:2]
             yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])
             support = support_of[s]
             surface = surfaces.get(support, surfaces["table"])
-            moved = 0.0
-            if support == "stacked":
+            xy_on = xy
+            if support == "table" and "bin" in surfaces and surfaces["bin"].margin(xy) > 0:
+                support, surface = "bin", surfaces["bin"]  # inside the bin's walls: in the bin
+            if support in FURNITURE_KINDS:  # footprint inside the bin's walls or on the shelf's board
+                inset = min(footprint_radius(asset, pose), *surface.half)
+                xy_on = _onto(surface, xy, np.asarray(surface.half) - inset)
+            elif support == "stacked":
                 base = self._base_under(xy, placed.values())
                 if base is None:
                     support, surface = "table", surfaces["table"]
-                else:
+                else:  # onto the inner half of the base's top, as the procedural sampler stacks
                     support, surface = base[0].name, base[1]
-                    xy_on = _onto_inner_half(surface, xy)
-                    moved = float(np.hypot(*(xy_on - xy)))
-                    xyz = np.array([xy_on[0], xy_on[1], xyz[2]])
+                    xy_on = _onto(surface, xy, np.asarray(surface.half) / 2)
+            moved = float(np.hypot(*(xy_on - xy)))
+            xyz = np.array([xy_on[0], xy_on[1], xyz[2]])
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
             placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
-            if moved:  # the snap is vertical, the move onto the base horizontal
+            if moved:  # the snap is vertical, the move onto a base or into the bin horizontal
                 total = round(math.hypot(placed[s].projection_distance, moved), 6)
                 placed[s] = placed[s].model_copy(update={"projection_distance": total})
             projection[s] = placed[s].projection_distance

@@ -11,7 +11,7 @@ import pytest
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
 from scenegen.diffusion.encoding import SLOTS, STACK_SNAP, XY_SCALE, SceneEncoding
-from scenegen.propose.procedural import DEFAULT_CAMERAS
+from scenegen.propose.procedural import DEFAULT_CAMERAS, footprint_radius
 from scenegen.realism import load_rows
 from scenegen.schema.condition import Condition
 
@@ -158,3 +158,24 @@ def test_an_object_decoded_as_stacked_moves_onto_the_nearest_base(encoding, rows
 
     far = shifted(max(top.half) + STACK_SNAP + 0.3).proposal.objects[slot]
     assert far.support != base.name
+
+
+def test_an_object_inside_the_bins_walls_goes_into_the_bin_with_its_footprint_inside(encoding, rows):
+    """A table object decoded inside the bin's walls rests on the bin's floor; one on the bin near a
+    wall moves in until its footprint circle clears the walls (the procedural sampler's rule)."""
+    row = next(r for r in rows if "bin" in {f["kind"] for f in r["furniture"]})
+    tokens, scene = encoding.encode_row(row)
+    bin_ = world.support_surfaces(decode(encoding, tokens, scene, row).proposal.furniture)["bin"]
+    slot, centre, support = 0, np.asarray(bin_.center), encoding.support_cols.start
+    for xy, kind in [(centre + [0.0, bin_.half[1] - 0.01], "table"), (centre - [bin_.half[0], 0.0], "bin")]:
+        moved = tokens.copy()
+        moved[slot, encoding.xyz_cols.start : encoding.xyz_cols.start + 2] = np.asarray(xy) / XY_SCALE
+        moved[slot, encoding.support_cols] = -1.0
+        moved[slot, support + ("table", "floor", "shelf", "bin", "stacked").index(kind)] = 1.0
+        decoded = decode(encoding, moved, scene, row)
+        o = decoded.proposal.objects[slot]
+        radius = footprint_radius(load_catalog().get(o.asset), o.resting_pose)
+        assert o.support == "bin"
+        assert o.position[2] > bin_.z  # on the bin's floor, not in the table under it
+        assert bin_.margin(o.position[:2]) >= min(radius, *bin_.half) - 1e-5
+        assert decoded.projection[slot] >= np.hypot(*(np.asarray(o.position[:2]) - xy)) - 1e-5

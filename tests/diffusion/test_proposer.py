@@ -5,6 +5,7 @@ check, settle and tag stages."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,18 @@ def recipe(tmp_path_factory: pytest.TempPathFactory) -> Path:
         )
     )
     return path
+
+
+def test_a_checkpoint_of_another_scene_encoding_is_refused(recipe: Path, tmp_path: Path):
+    config = load_pipeline(recipe)
+    old = tmp_path / "old"
+    shutil.copytree(config.proposer.checkpoint, old)
+    meta = json.loads((old / "config.json").read_text())
+    meta["encoding"]["version"] = 1
+    (old / "config.json").write_text(json.dumps(meta))
+    settings = config.proposer.model_copy(update={"checkpoint": str(old)})
+    with pytest.raises(ValueError, match="encoding v1.*retrain"):
+        PROPOSERS["diffusion"](settings, load_catalog())
 
 
 def test_proposals_depend_only_on_request_seed_and_index(recipe: Path):

@@ -11,6 +11,7 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.check.geometry import run_checks
 from scenegen.cli import main
 from scenegen.config import load_pipeline
+from scenegen.diffusion.encoding import ENCODING_VERSION
 from scenegen.propose.base import PROPOSERS
 from scenegen.store import sha256_file
 from scenegen.tags import PREDICATE_VERSION
@@ -24,6 +25,7 @@ def test_the_shipped_checkpoint_matches_the_committed_data_predicates_and_catalo
     assert config["data"]["sha256"] == sha256_file(ROOT / config["data"]["path"])
     assert config["predicate_version"] == PREDICATE_VERSION
     assert config["catalog_sha256"] == load_catalog().sha256
+    assert config["encoding"]["version"] == ENCODING_VERSION
     assert config["step"] == config["train"]["steps"]  # a finished run, not a snapshot
     assert not (GENERATOR / "train_state.safetensors").exists()  # optimizer state is not shipped
     assert (GENERATOR / "model.safetensors").stat().st_size < 8 * 2**20
