@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from scenegen import world
+from scenegen.check.geometry import quat_to_matrix
 from scenegen.diffusion.encoding import (
     AMBIENT_CENTRE,
     AMBIENT_SCALE,
@@ -48,7 +49,6 @@ from scenegen.diffusion.encoding import (
     XY_SCALE,
     SceneEncoding,
 )
-from scenegen.check.geometry import quat_to_matrix
 from scenegen.propose.procedural import FURNITURE_HOME
 
 ROBOT_BASE_XY = (-0.56, 0.0)

@@ -4,8 +4,9 @@ A scene is ``SLOTS`` object tokens plus one scene token, every entry scaled to a
 
 object token (``object_width``; an empty slot is all -1 with ``present`` -1):
     present (+1/-1), asset one-hot (catalog order, +1/-1), resting-pose one-hot (``max_poses``; the
-    asset's upright poses first, see :attr:`SceneEncoding.pose_order`), support one-hot (``SUPPORTS``), x, y and height above the table top, each / 0.5 m, cos and sin
-    of the yaw about the resting pose, target flag (+1 for the target, -1 otherwise)
+    asset's upright poses first, see :attr:`SceneEncoding.pose_order`), support one-hot
+    (``SUPPORTS``), x, y and height above the table top, each / 0.5 m, cos and sin of the yaw about
+    the resting pose, target flag (+1 for the target, -1 otherwise)
 scene token (``scene_width``):
     per furniture kind: present, dx / 0.05 m and dy / 0.05 m from its home position;
     ambient ((a - 0.15) / 0.15); per light slot (``LIGHT_SLOTS``): present, position / 2.5 m
@@ -106,7 +107,9 @@ class SceneEncoding:
         # pose_order[asset][column] = resting-pose index: upright poses first, so that a column means
         # "upright" for most assets (a sample whose asset changes late in denoising stays upright)
         self.pose_order = {
-            a.name: tuple(sorted(range(len(a.resting_poses)), key=lambda p: (not a.resting_poses[p].upright, p)))
+            a.name: tuple(
+                sorted(range(len(a.resting_poses)), key=lambda p: (not a.resting_poses[p].upright, p))
+            )
             for a in catalog.assets
         }
         n_assets = len(self.assets)
