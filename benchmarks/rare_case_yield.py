@@ -3,7 +3,7 @@ rejection sampling, (b) the hand-targeted proposer and (c) the diffusion generat
 analytic estimate, (c) at fewer sampling steps, and the scenes after which training (c) paid off.
 
     .venv/bin/python benchmarks/rare_case_yield.py [--target auto|mug|...] [--tags near_edge toppled ...]
-        [--scenes-a 3] [--scenes-b 10] [--scenes-c 20] [--steps-panel 10 5] [--max-proposals 600]
+        [--scenes-a 5] [--scenes-b 10] [--scenes-c 20] [--steps-panel 10 5] [--max-proposals 400]
 
 All run the reference recipe (pipelines/reference.yaml: the distributions the reference set was drawn
 from; (c) takes its proposer settings from --generator, pipelines/demo.yaml) with the request
@@ -133,7 +133,7 @@ def main() -> None:
         "reference set holds the tag most often (the best case for rejection sampling)",
     )
     parser.add_argument("--tags", nargs="+", default=list(RARE_TAGS), choices=RARE_TAGS)
-    parser.add_argument("--scenes-a", type=int, default=3, help="tag-holding scenes wanted from (a)")
+    parser.add_argument("--scenes-a", type=int, default=5, help="tag-holding scenes wanted from (a)")
     parser.add_argument("--scenes-b", type=int, default=10, help="tag-holding scenes wanted from (b)")
     parser.add_argument("--scenes-c", type=int, default=20, help="tag-holding scenes wanted from (c)")
     parser.add_argument(
@@ -146,7 +146,7 @@ def main() -> None:
         "--steps-panel", type=int, nargs="*", default=[10, 5], help="(c) again at these sampling steps"
     )
     parser.add_argument("--scenes-steps", type=int, default=10, help="tag-holding scenes per steps-panel run")
-    parser.add_argument("--max-proposals", type=int, default=600, help="proposal cap of each run")
+    parser.add_argument("--max-proposals", type=int, default=400, help="proposal cap of each run")
     parser.add_argument("--calibration", type=int, default=80, help="proposals of the unconditioned run")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/rare_case_yield.json"))

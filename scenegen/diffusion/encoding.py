@@ -64,7 +64,10 @@ AMBIENT_CENTRE, AMBIENT_SCALE = 0.15, 0.15
 TINT_SCALE = 0.2
 INTENSITY_CENTRE, INTENSITY_SCALE = 0.6, 0.6
 LIGHT_WIDTH = 9
-STACK_SNAP = 0.10  # m: an object decoded as stacked moves onto the nearest base's top within this
+# m: an object decoded as stacked moves onto the nearest base's top within this. The model marks about
+# as many targets stacked as the data (3.3 % against 2.3 %) but misplaces them: within 10 cm 0.7 % of
+# null samples keep a stacked target, within 30 cm 1.9 % (median move 17 cm; data 2.4 %)
+STACK_SNAP = 0.30
 
 
 def _onto(surface: world.Surface, xy: np.ndarray, half: Sequence[float]) -> np.ndarray:
