@@ -14,9 +14,10 @@ scene token (``scene_width``):
     (intensity - 0.6) / 0.6, casts shadow; the number of objects (one-hot over 1..``SLOTS``)
 
 Decoding keeps the ``count`` slots with the highest presence, ``count`` the argmax of the scene
-token's object-count one-hot: one categorical decides how many objects a scene has (eight
-independent presence signs made the model's counts too central: 7 % six-object scenes against the
-data's 15 %; see docs/generator.md).
+token's object-count one-hot, but no slot whose presence is <= 0 (an empty slot decodes to garbage:
+all -1, at x = y = -0.5 m) unless none is present, then the most present one. Training with the count
+one-hot calibrated the presences themselves (six-object scenes 12.5 % of null samples, 7 % before;
+data 15 %); see docs/generator.md.
 
 Decoding snaps every object onto a stable resting pose of its asset at its support's height
 (objects on the table, floor and furniture first, then stacked ones onto the inner half of the top
@@ -206,7 +207,7 @@ class SceneEncoding:
     ) -> Decoded:
         """A proposal from (possibly noisy) tokens: discrete fields by argmax, objects snapped onto a
         resting pose at their support's height, the target an object of ``condition.target``'s
-        category (see :meth:`_target`). The scene has the ``count`` most-present slots' objects.
+        category (see :meth:`_target`). The scene has the most present slots' objects (module docstring).
 
         ``own_target``: the target is the slot the sample flags most, whatever its category, and the
         proposal's condition names that category (for samples of the null condition)."""
@@ -214,6 +215,7 @@ class SceneEncoding:
         furniture = self._furniture(scene)
         surfaces = world.support_surfaces(furniture)
         count = int(np.argmax(scene[self.count_cols])) + 1
+        count = min(count, max(1, int(np.sum(tokens[:, 0] > 0))))  # never an empty slot's -1 token
         present = sorted(np.argsort(-tokens[:, 0], kind="stable")[:count].tolist())
         support_of = {s: SUPPORTS[int(np.argmax(tokens[s, self.support_cols]))] for s in present}
         for s, kind in support_of.items():

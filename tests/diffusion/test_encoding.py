@@ -85,21 +85,27 @@ def test_noisy_tokens_decode_onto_resting_poses_and_report_the_projection(encodi
         assert max(decoded.projection) > 1e-3  # the height noise (0.05 x 0.5 m) was projected away
 
 
-def test_the_object_count_decides_how_many_slots_are_decoded(encoding, rows):
+def test_the_object_count_decides_how_many_present_slots_are_decoded(encoding, rows):
     row = next(r for r in rows if len(r["objects"]) >= 4)
     tokens, scene = encoding.encode_row(row)
     n = len(row["objects"])
     assert np.argmax(scene[encoding.count_cols]) == n - 1
-    tokens[:, 0] = np.linspace(-0.5, -0.9, SLOTS)  # no slot says present: the count still holds
-    scene[encoding.count_cols] = -1.0
-    scene[encoding.count_cols.start + 1] = 1.0  # two objects: the two most present slots
-    first = encoding.catalog.get(row["objects"][0]["asset"]).category  # a target among the two kept
-    objects = encoding.decode(tokens, scene, Condition(target=first), DEFAULT_CAMERAS).proposal.objects
-    assert [o.name for o in objects] == [o["name"] for o in row["objects"][:2]]
-    tokens[:, 0] = 1.0  # every slot says present; the count keeps n (empty slots decode too)
-    scene[encoding.count_cols] = -1.0
-    scene[encoding.count_cols.start + SLOTS - 1] = 1.0
-    assert len(decode(encoding, tokens, scene, row).proposal.objects) == SLOTS
+    first = encoding.catalog.get(row["objects"][0]["asset"]).category  # a target among those kept
+
+    def names(count: int, presence: np.ndarray) -> list[str]:
+        t, c = tokens.copy(), scene.copy()
+        t[:, 0] = presence
+        c[encoding.count_cols] = -1.0
+        c[encoding.count_cols.start + count - 1] = 1.0
+        objects = encoding.decode(t, c, Condition(target=first), DEFAULT_CAMERAS).proposal.objects
+        return [o.name for o in objects]
+
+    expected = [o["name"] for o in row["objects"]]
+    falling = np.linspace(1.0, 0.3, SLOTS)  # every slot present, the first most
+    assert names(2, falling) == expected[:2]  # the count keeps the two most present
+    present_n = np.where(np.arange(SLOTS) < n, falling, -1.0)
+    assert names(SLOTS, present_n) == expected  # never an empty slot, whatever the count
+    assert names(2, np.linspace(-0.5, -0.9, SLOTS)) == expected[:1]  # none present: the most present
 
 
 def test_pose_column_zero_is_upright_for_every_asset_that_has_an_upright_pose(encoding):
