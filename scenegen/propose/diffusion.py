@@ -9,6 +9,7 @@ it (one batch), so it does not depend on how a batch is chunked, resumed or spre
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -23,6 +24,19 @@ from scenegen.propose.procedural import DEFAULT_CAMERAS, jitter_cameras
 from scenegen.propose.separate import separate
 from scenegen.schema.condition import RARE_TAGS, Condition
 from scenegen.schema.scene import Camera, SceneProposal
+
+
+def encoding_mismatch(config: dict, checkpoint: str) -> str | None:
+    """Why a checkpoint's config.json does not fit this code's scene encoding, or None."""
+    from scenegen.diffusion.encoding import ENCODING_VERSION
+
+    version = config.get("encoding", {}).get("version", 1)
+    if version == ENCODING_VERSION:
+        return None
+    return (
+        f"{checkpoint}: made with scene encoding v{version}, this scenegen reads v{ENCODING_VERSION}; "
+        "retrain it (scenegen train --out DIR, see docs/generator.md)"
+    )
 
 
 class DiffusionSettings(BaseModel):
@@ -51,6 +65,9 @@ class DiffusionSettings(BaseModel):
                 f"{checkpoint}: no checkpoint there (model.safetensors + config.json); "
                 "train one with `scenegen train --out DIR`"
             )
+        mismatch = encoding_mismatch(json.loads((path / "config.json").read_text()), checkpoint)
+        if mismatch:
+            raise ValueError(mismatch)
         return checkpoint
 
     def checkpoint_dir(self) -> Path:
@@ -73,7 +90,7 @@ class DiffusionProposer:
     """Samples whole scenes from the denoiser for a condition."""
 
     def __init__(self, settings: DiffusionSettings, catalog: Catalog):
-        from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
+        from scenegen.diffusion.encoding import SceneEncoding
 
         self.settings = settings
         self.catalog = catalog
@@ -81,12 +98,9 @@ class DiffusionProposer:
         self.encoding = SceneEncoding(catalog)
         if self.config["encoding"]["assets"] != list(self.encoding.assets):
             raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
-        version = self.config["encoding"].get("version", 1)
-        if version != ENCODING_VERSION:
-            raise ValueError(
-                f"{settings.checkpoint}: made with scene encoding v{version}, this scenegen reads "
-                f"v{ENCODING_VERSION}; retrain it (scenegen train --out DIR, see docs/generator.md)"
-            )
+        mismatch = encoding_mismatch(self.config, settings.checkpoint)
+        if mismatch:
+            raise ValueError(mismatch)
         self._group_key: tuple | None = None
         self._group: list = []
 

@@ -53,9 +53,15 @@ def test_a_checkpoint_of_another_scene_encoding_is_refused(recipe: Path, tmp_pat
     meta = json.loads((old / "config.json").read_text())
     meta["encoding"]["version"] = 1
     (old / "config.json").write_text(json.dumps(meta))
-    settings = config.proposer.model_copy(update={"checkpoint": str(old)})
+    settings = config.proposer.model_copy(update={"checkpoint": str(old)})  # model_copy: no validation
     with pytest.raises(ValueError, match="encoding v1.*retrain"):
         PROPOSERS["diffusion"](settings, load_catalog())
+    recipe_old = tmp_path / "old.yaml"
+    raw = yaml.safe_load(recipe.read_text())
+    raw["proposer"]["checkpoint"] = str(old)
+    recipe_old.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match=r"proposer.checkpoint: .*encoding v1.*retrain"):
+        load_pipeline(recipe_old)
 
 
 def test_proposals_depend_only_on_request_seed_and_index(recipe: Path):
