@@ -22,6 +22,9 @@ decoding are pushed apart by propose/separate.py).
   (ambient + unshadowed direct light on an upward surface at the target above 0.22, an upper bound of
   the predicate's irradiance, which also counts shadows). ``occluded`` has no soft version.
 
+Presence is each slot's own sign; decoding also caps the objects at the scene token's count, which
+the terms ignore (a slot beyond the count still pushes and counts as a neighbour).
+
 Every term is >= 0 and 0 on scenes that satisfy it; :meth:`SceneCost.__call__` returns their
 weighted sum per sample.
 """

@@ -23,7 +23,8 @@ Decoding snaps every object onto a stable resting pose of its asset at its suppo
 (objects on the table, floor and furniture first, then stacked ones onto the inner half of the top
 of the nearest base within ``STACK_SNAP``, as the procedural sampler stacks them; a table object
 whose centre is inside the bin's walls goes into the bin, and an object in the bin or on the shelf
-moves in until its footprint circle is inside, the procedural sampler's rule) and reports how far
+moves in until its footprint circle is inside, centred along an axis where it does not fit: the
+procedural sampler's rule) and reports how far
 that moved its centre (``projection_distance``): the decoded height against the height the support
 and resting pose dictate, and the horizontal move onto a base or into the furniture. Encoding the
 settled layout of a stored or reference scene takes each object's nearest resting pose to its settled
@@ -125,8 +126,9 @@ class SceneEncoding:
         self.yaw_cols = slice(self.xyz_cols.stop, self.xyz_cols.stop + 2)
         self.target_col = self.yaw_cols.stop
         self.object_width = self.target_col + 1
-        self.count_cols = slice(3 * len(FURNITURE_KINDS) + 1 + LIGHT_WIDTH * light_slots, None)
-        self.scene_width = self.count_cols.start + slots
+        start = 3 * len(FURNITURE_KINDS) + 1 + LIGHT_WIDTH * light_slots
+        self.count_cols = slice(start, start + slots)
+        self.scene_width = self.count_cols.stop
 
     # ------------------------------------------------------------------------------ encode
 
@@ -190,6 +192,8 @@ class SceneEncoding:
                 (light["intensity"] - INTENSITY_CENTRE) / INTENSITY_SCALE,
                 1.0 if light["cast_shadow"] else -1.0,
             ]
+        if not row["objects"]:
+            raise ValueError(f"layout {row.get('index')}: no objects; a scene holds at least one")
         out += list(_onehot(len(row["objects"]) - 1, self.slots))
         return np.asarray(out, float)
 
@@ -236,23 +240,23 @@ class SceneEncoding:
             support = support_of[s]
             surface = surfaces.get(support, surfaces["table"])
             xy_on = xy
-            if support == "table" and "bin" in surfaces and surfaces["bin"].margin(xy) > 0:
-                support, surface = "bin", surfaces["bin"]  # inside the bin's walls: in the bin
-            if support in FURNITURE_KINDS:  # footprint inside the bin's walls or on the shelf's board
-                inset = min(footprint_radius(asset, pose), *surface.half)
-                xy_on = _onto(surface, xy, np.asarray(surface.half) - inset)
-            elif support == "stacked":
+            if support == "stacked":
                 base = self._base_under(xy, placed.values())
                 if base is None:
                     support, surface = "table", surfaces["table"]
                 else:  # onto the inner half of the base's top, as the procedural sampler stacks
                     support, surface = base[0].name, base[1]
                     xy_on = _onto(surface, xy, np.asarray(surface.half) / 2)
+            if support == "table" and "bin" in surfaces and surfaces["bin"].margin(xy) > 0:
+                support, surface = "bin", surfaces["bin"]  # inside the bin's walls: in the bin
+            if support in FURNITURE_KINDS:  # footprint inside the bin's walls or on the shelf's board
+                radius = footprint_radius(asset, pose)
+                xy_on = _onto(surface, xy, np.maximum(np.asarray(surface.half) - radius, 0.0))
             moved = float(np.hypot(*(xy_on - xy)))
             xyz = np.array([xy_on[0], xy_on[1], xyz[2]])
             quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[pose].quat))
             placed[s] = placed_at_rest(f"obj{s}_{asset.name}", asset, xyz, quat, surface, support)
-            if moved:  # the snap is vertical, the move onto a base or into the bin horizontal
+            if moved:  # the snap is vertical, the move onto a base or into the furniture horizontal
                 total = round(math.hypot(placed[s].projection_distance, moved), 6)
                 placed[s] = placed[s].model_copy(update={"projection_distance": total})
             projection[s] = placed[s].projection_distance

@@ -194,7 +194,7 @@ def train(
     }
     if (out / "config.json").is_file():
         saved = json.loads((out / "config.json").read_text())
-        for key in ("denoiser", "train", "data", "predicate_version"):
+        for key in ("denoiser", "encoding", "train", "data", "predicate_version"):
             if _unextendable(saved[key], key) != _unextendable(config[key], key):
                 raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
         if saved["step"] > settings.steps:

@@ -65,7 +65,11 @@ class DiffusionSettings(BaseModel):
                 f"{checkpoint}: no checkpoint there (model.safetensors + config.json); "
                 "train one with `scenegen train --out DIR`"
             )
-        mismatch = encoding_mismatch(json.loads((path / "config.json").read_text()), checkpoint)
+        try:
+            config = json.loads((path / "config.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{checkpoint}: config.json unreadable ({exc}); retrain or restore it") from None
+        mismatch = encoding_mismatch(config, checkpoint)
         if mismatch:
             raise ValueError(mismatch)
         return checkpoint

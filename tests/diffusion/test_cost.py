@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from scenegen.assets.catalog import load_catalog
-from scenegen.diffusion.cost import SceneCost
+from scenegen.diffusion.cost import SceneCost, disc_radius
 from scenegen.diffusion.encoding import XY_SCALE, SceneEncoding
 from scenegen.diffusion.model import ConditionBatch, Denoiser, DenoiserConfig
 from scenegen.diffusion.sample import sample
@@ -154,3 +154,30 @@ def test_a_stacked_object_does_not_count_as_penetrating_its_base(encoding, token
     table_only = [k for k, r in enumerate(rows) if all(o["support"] == "table" for o in r["objects"])]
     term = cost.terms(objects, scene)["penetration"]
     assert term[stacked].mean() < 0.01 and term[table_only].mean() < 0.01  # reference layouts do not overlap
+
+
+def test_penetration_uses_the_disc_of_the_sampled_resting_pose(encoding, tokens):
+    """Two upright mugs overlap exactly when their centres are closer than twice the upright pose's
+    disc radius (not the circle of the asset's widest pose); columns the mug lacks weigh nothing."""
+    rows, objects, scene = tokens
+    mug = encoding.catalog.get("mug")
+    upright = encoding.pose_order["mug"][0]
+    radius = disc_radius(mug, upright)
+    assert radius < max(disc_radius(mug, p) for p in range(len(mug.resting_poses)))
+    pair = -torch.ones(1, encoding.slots, encoding.object_width)
+    for slot in (0, 1):
+        pair[0, slot, 0] = 1.0
+        pair[0, slot, encoding.asset_cols.start + encoding.assets.index("mug")] = 1.0
+        pair[0, slot, encoding.pose_cols.start] = 1.0  # column 0: an upright pose
+        pair[0, slot, encoding.support_cols.start] = 1.0  # on the table
+        pair[0, slot, encoding.xyz_cols] = torch.tensor([0.0, 0.0, 0.05 / XY_SCALE])
+        pair[0, slot, encoding.yaw_cols.start] = 1.0
+    cost = SceneCost(encoding)
+
+    def penetration(gap: float) -> float:
+        moved = pair.clone()
+        moved[0, 1, encoding.xyz_cols.start] = (2 * radius + gap) / XY_SCALE
+        return float(cost.terms(moved, scene[:1])["penetration"])
+
+    assert penetration(0.005) < 1e-4
+    assert penetration(-0.02) == pytest.approx(0.02, abs=2e-3)

@@ -90,22 +90,25 @@ def test_the_object_count_decides_how_many_present_slots_are_decoded(encoding, r
     tokens, scene = encoding.encode_row(row)
     n = len(row["objects"])
     assert np.argmax(scene[encoding.count_cols]) == n - 1
-    first = encoding.catalog.get(row["objects"][0]["asset"]).category  # a target among those kept
+    target = encoding.catalog.get(row["objects"][2]["asset"]).category  # slot 2 is kept in every case
 
     def names(count: int, presence: np.ndarray) -> list[str]:
         t, c = tokens.copy(), scene.copy()
         t[:, 0] = presence
         c[encoding.count_cols] = -1.0
         c[encoding.count_cols.start + count - 1] = 1.0
-        objects = encoding.decode(t, c, Condition(target=first), DEFAULT_CAMERAS).proposal.objects
+        objects = encoding.decode(t, c, Condition(target=target), DEFAULT_CAMERAS).proposal.objects
         return [o.name for o in objects]
 
     expected = [o["name"] for o in row["objects"]]
-    falling = np.linspace(1.0, 0.3, SLOTS)  # every slot present, the first most
-    assert names(2, falling) == expected[:2]  # the count keeps the two most present
-    present_n = np.where(np.arange(SLOTS) < n, falling, -1.0)
+    presence = np.full(SLOTS, 0.3)
+    presence[[2, 0]] = (0.9, 0.6)  # every slot present, slots 2 and 0 the most
+    assert names(2, presence) == [expected[0], expected[2]]  # the count keeps the two most present
+    present_n = np.where(np.arange(SLOTS) < n, presence, -1.0)
     assert names(SLOTS, present_n) == expected  # never an empty slot, whatever the count
-    assert names(2, np.linspace(-0.5, -0.9, SLOTS)) == expected[:1]  # none present: the most present
+    none = np.full(SLOTS, -0.9)
+    none[2] = -0.5
+    assert names(2, none) == [expected[2]]  # none present: the most present one
 
 
 def test_pose_column_zero_is_upright_for_every_asset_that_has_an_upright_pose(encoding):
@@ -181,7 +184,8 @@ def test_an_object_inside_the_bins_walls_goes_into_the_bin_with_its_footprint_in
         decoded = decode(encoding, moved, scene, row)
         o = decoded.proposal.objects[slot]
         radius = footprint_radius(load_catalog().get(o.asset), o.resting_pose)
+        height = load_catalog().get(o.asset).resting_poses[o.resting_pose].height
         assert o.support == "bin"
-        assert o.position[2] > bin_.z  # on the bin's floor, not in the table under it
+        assert o.position[2] - height == pytest.approx(bin_.z, abs=1e-6)  # on the bin's floor
         assert bin_.margin(o.position[:2]) >= min(radius, *bin_.half) - 1e-5
         assert decoded.projection[slot] >= np.hypot(*(np.asarray(o.position[:2]) - xy)) - 1e-5
