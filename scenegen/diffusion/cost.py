@@ -37,7 +37,6 @@ import numpy as np
 import torch
 
 from scenegen import world
-from scenegen.check.geometry import quat_to_matrix
 from scenegen.diffusion.encoding import (
     AMBIENT_CENTRE,
     AMBIENT_SCALE,
@@ -52,7 +51,7 @@ from scenegen.diffusion.encoding import (
     XY_SCALE,
     SceneEncoding,
 )
-from scenegen.propose.procedural import FURNITURE_HOME
+from scenegen.propose.procedural import FURNITURE_HOME, footprint_half_extents
 
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column
@@ -64,10 +63,7 @@ SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults
 
 def disc_radius(asset, pose: int) -> float:
     """sqrt(a b) (m) for the half extents a, b of the asset's footprint box in resting pose ``pose``."""
-    ext = np.asarray(asset.extents) / 2
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
-    half = np.abs(corners @ quat_to_matrix(asset.resting_poses[pose].quat).T).max(0)
-    return float(np.sqrt(half[0] * half[1]))
+    return float(np.sqrt(np.prod(footprint_half_extents(asset, pose))))
 
 
 class SceneCost:

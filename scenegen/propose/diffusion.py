@@ -26,17 +26,16 @@ from scenegen.schema.condition import RARE_TAGS, Condition
 from scenegen.schema.scene import Camera, SceneProposal
 
 
-def encoding_mismatch(config: dict, checkpoint: str) -> str | None:
-    """Why a checkpoint's config.json does not fit this code's scene encoding, or None."""
+def require_encoding(config: dict, checkpoint: str) -> None:
+    """Raise ValueError when a checkpoint's config.json was made with another scene encoding."""
     from scenegen.diffusion.encoding import ENCODING_VERSION
 
     version = config.get("encoding", {}).get("version", 1)
-    if version == ENCODING_VERSION:
-        return None
-    return (
-        f"{checkpoint}: made with scene encoding v{version}, this scenegen reads v{ENCODING_VERSION}; "
-        "retrain it (scenegen train --out DIR, see docs/generator.md)"
-    )
+    if version != ENCODING_VERSION:
+        raise ValueError(
+            f"{checkpoint}: made with scene encoding v{version}, this scenegen reads v{ENCODING_VERSION}; "
+            "retrain it (scenegen train --out DIR, see docs/generator.md)"
+        )
 
 
 class DiffusionSettings(BaseModel):
@@ -69,9 +68,7 @@ class DiffusionSettings(BaseModel):
             config = json.loads((path / "config.json").read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise ValueError(f"{checkpoint}: config.json unreadable ({exc}); retrain or restore it") from None
-        mismatch = encoding_mismatch(config, checkpoint)
-        if mismatch:
-            raise ValueError(mismatch)
+        require_encoding(config, checkpoint)
         return checkpoint
 
     def checkpoint_dir(self) -> Path:
@@ -102,9 +99,7 @@ class DiffusionProposer:
         self.encoding = SceneEncoding(catalog)
         if self.config["encoding"]["assets"] != list(self.encoding.assets):
             raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
-        mismatch = encoding_mismatch(self.config, settings.checkpoint)
-        if mismatch:
-            raise ValueError(mismatch)
+        require_encoding(self.config, settings.checkpoint)
         self._group_key: tuple | None = None
         self._group: list = []
 

@@ -177,14 +177,23 @@ def _r(v) -> tuple[float, ...]:
     return tuple(round(float(x), 6) for x in v)
 
 
-def footprint_radius(asset: Asset, pose: int) -> float:
-    """Radius (m) of a circle that holds the asset's footprint in resting pose ``pose``, any yaw."""
+def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
+    """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
     from scenegen.check.geometry import quat_to_matrix
 
     ext = np.asarray(asset.extents) / 2
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
-    rotated = corners @ quat_to_matrix(asset.resting_poses[pose].quat).T
-    return float(np.linalg.norm(rotated[:, :2], axis=1).max())
+    return (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, :2]
+
+
+def footprint_radius(asset: Asset, pose: int) -> float:
+    """Radius (m) of a circle that holds the asset's footprint in resting pose ``pose``, any yaw."""
+    return float(np.linalg.norm(_footprint_corners(asset, pose), axis=1).max())
+
+
+def footprint_half_extents(asset: Asset, pose: int) -> np.ndarray:
+    """Half extents (m, x and y) of the asset's footprint box in resting pose ``pose`` at yaw 0."""
+    return np.abs(_footprint_corners(asset, pose)).max(0)
 
 
 @register_proposer("procedural")
