@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast test-full lint assets bench bench-rare bench-null sweep clean
+.PHONY: setup demo test test-fast test-full audit lint assets bench bench-rare bench-null sweep clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,10 +14,11 @@ $(BIN)/scenegen: pyproject.toml
 
 setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)
 
-demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), then its contact sheet
+demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), its contact sheet and audit
 	rm -rf runs/demo
 	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo --workers 2
 	$(BIN)/scenegen show runs/demo
+	$(BIN)/scenegen audit runs/demo/manifest.yaml
 
 test: setup  ## the whole test suite, as CI runs it
 	$(BIN)/python -m pytest -q
@@ -27,6 +28,9 @@ test-fast: setup  ## everything but the slow end-to-end tests
 
 test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)
 	$(BIN)/python -m pytest -q --full -m full
+
+audit: setup  ## verify data_manifest.yaml against the files (scenegen audit)
+	$(BIN)/scenegen audit data_manifest.yaml
 
 lint: setup
 	$(BIN)/ruff check scenegen tests benchmarks

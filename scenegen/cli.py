@@ -25,6 +25,8 @@ exactly when the same command is run again; the output does not depend on --work
 examples:
   scenegen generate pipelines/demo.yaml --n 20 --seed 0 --out runs/demo --workers 2
   scenegen show runs/demo            # contact sheet: runs/demo/contact_sheet.png
+  scenegen audit runs/demo/manifest.yaml
+  scenegen manifest add runs/demo    # into data_manifest.yaml, after auditing it
 """
 
 
@@ -163,6 +165,41 @@ def _parser() -> argparse.ArgumentParser:
     show.add_argument("--seg", action="store_true", help="add segmentation beside each RGB thumbnail")
     show.add_argument("--max", type=int, default=24, help="at most this many scenes (default 24)")
     show.add_argument("--columns", type=int, default=4, help="thumbnails per row (default 4)")
+    aud = sub.add_parser(
+        "audit",
+        help="verify a data manifest against its files (counts, checksums, provenance, realism)",
+        description=(
+            "Trust nothing in a manifest: recount files, recompute checksums, compare counts with batch "
+            "indexes and rejection logs, check recipes and alpha, realism checks (present, passing, "
+            "computed on the batch they name), predicate versions and checkpoint hashes. Exit 0 when "
+            "everything holds, 1 with every violation named and located (an unreadable or invalid manifest "
+            "included), 2 when the file does not exist."
+        ),
+    )
+    aud.add_argument(
+        "manifest",
+        type=Path,
+        nargs="?",
+        default=Path("data_manifest.yaml"),
+        help="a project manifest or a batch's manifest.yaml (default: data_manifest.yaml here)",
+    )
+    aud.add_argument("--json", action="store_true", help="the report as JSON on stdout")
+
+    man = sub.add_parser("manifest", help="add a batch to the project manifest (after auditing it)")
+    man_sub = man.add_subparsers(dest="manifest_command", metavar="ACTION", required=True)
+    add = man_sub.add_parser(
+        "add",
+        help="merge a batch's manifest.yaml into the project manifest, atomically",
+        description=(
+            "Audit BATCH/manifest.yaml, then add its source to the project manifest with its location "
+            "relative to the project manifest's folder (which must hold the batch). Nothing is written "
+            "when the batch fails its audit."
+        ),
+    )
+    add.add_argument("batch", type=Path, help="batch directory written by `scenegen generate`")
+    add.add_argument("--to", type=Path, default=Path("data_manifest.yaml"), help="project manifest")
+    add.add_argument("--name", help="source name (default: the batch's recipe name)")
+    add.add_argument("--replace", action="store_true", help="replace a source of the same name")
     return parser
 
 
@@ -234,10 +271,13 @@ def _reference(args: argparse.Namespace) -> int:
     print(f"{stats['rows']} layouts of {stats['proposals']} proposals -> {args.out}")
     print("tag rates: " + ", ".join(f"{t} {c} ({r:.1%})" for t, (c, r) in tag_rates(table).items()))
     if args.manifest:
-        from scenegen.manifest import register_source
+        from scenegen.manifest import ManifestError, add_source
         from scenegen.reference import reference_source
 
-        register_source(args.manifest, reference_source(args.out, args.manifest.parent))
+        try:
+            add_source(args.manifest, reference_source(args.out, args.manifest.parent), replace=True)
+        except ManifestError as exc:
+            return _fail(str(exc))
         print(f"registered as source 'reference' in {args.manifest}")
     return 0
 
@@ -365,13 +405,50 @@ _GL_BACKENDS = (
 )
 
 
+def _audit(args: argparse.Namespace) -> int:
+    from scenegen.manifest.audit import audit
+
+    if not args.manifest.is_file():
+        return _fail(
+            f"{args.manifest}: no such manifest (give a data_manifest.yaml or a batch's manifest.yaml)"
+        )
+    report = audit(args.manifest)
+    print(report.to_json() if args.json else report.to_text())
+    return 0 if report.ok else 1
+
+
+def _manifest(args: argparse.Namespace) -> int:
+    from scenegen.manifest import ManifestError, add_source, read_manifest, relocate
+    from scenegen.manifest.audit import audit
+
+    batch_manifest = args.batch / "manifest.yaml"
+    if not batch_manifest.is_file():
+        return _fail(f"{batch_manifest}: missing; is {args.batch} a batch written by `scenegen generate`?")
+    report = audit(batch_manifest)
+    if not report.ok:
+        print(report.to_text(), file=sys.stderr)
+        return _fail(
+            f"{args.batch}: fails its audit ({len(report.violations)} violations); nothing was added"
+        )
+    try:
+        (source,) = read_manifest(batch_manifest).sources
+        source = relocate(source, args.batch, args.to, args.name)
+        add_source(args.to, source, replace=args.replace)
+    except ManifestError as exc:
+        return _fail(str(exc))
+    print(f"added source {source.name!r} ({source.counts.scenes} scenes, {source.location}) to {args.to}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
-    no_gl = args.command in ("train", "sweep") or (args.command == "generate" and args.no_render)
+    no_gl = args.command in ("train", "sweep", "audit", "manifest") or (
+        args.command == "generate" and args.no_render
+    )
     if no_gl and "mujoco" not in sys.modules:
         os.environ["MUJOCO_GL"] = "disable"  # no GL is touched: a broken GL set-up cannot get in the way
     backend = os.environ.get("MUJOCO_GL", "egl").lower().strip()
@@ -397,6 +474,10 @@ def main(argv: list[str] | None = None) -> int:
         return _train(args)
     if args.command == "sweep":
         return _sweep(args)
+    if args.command == "audit":
+        return _audit(args)
+    if args.command == "manifest":
+        return _manifest(args)
     if args.command == "coverage":
         from scenegen import coverage
 

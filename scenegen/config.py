@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
 from scenegen.check.geometry import CheckSettings
 from scenegen.propose.base import impossible_request
@@ -30,6 +30,18 @@ PROPOSER_SETTINGS: dict[str, type[BaseModel]] = {
 }
 
 
+class RealismFilter(BaseModel):
+    """The per-scene ``unrealistic`` filter of a recipe (``realism:``): a settled scene whose typicality
+    (scenegen.scene_score.SceneScorer) against the reference set's train split is below ``min_score`` is
+    rejected as ``unrealistic``; the score is recorded in every scene's checks."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min_score: float = Field(0.01, ge=0.0, le=1.0)
+    k: int = Field(5, ge=1, le=50)
+    reference: str = "assets/reference/reference.parquet"  # relative paths: to the project root
+
+
 class ConfigError(ValueError):
     """A pipeline file is invalid; the message is one line naming the file and field."""
 
@@ -40,7 +52,7 @@ class PipelineConfig(BaseModel):
     Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
     many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
     (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
-    ``settle``; ``render``.
+    ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -56,6 +68,7 @@ class PipelineConfig(BaseModel):
     checks: CheckSettings = CheckSettings()
     settle: SettleSettings = SettleSettings()
     tags: TagSettings = TagSettings()
+    realism: RealismFilter | None = None  # per-scene `unrealistic` filter; None: off
     render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
 
     @model_validator(mode="after")
@@ -66,6 +79,15 @@ class PipelineConfig(BaseModel):
         if problem:
             raise ValueError(f"condition: {problem}")
         return self
+
+    @model_serializer(mode="wrap")
+    def _omit_unset_filter(self, handler):
+        # A recipe without the realism filter dumps (and hashes) exactly as before the filter existed,
+        # so the digests stamped into the reference set and earlier batches stay valid.
+        data = handler(self)
+        if data.get("realism", 0) is None:
+            del data["realism"]
+        return data
 
     @property
     def proposal_cap(self) -> int:

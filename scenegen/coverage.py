@@ -226,7 +226,7 @@ def _manifest(path: Path) -> CoverageTable:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "(top level)"
         raise CoverageError(
-            f"{path}: not a data manifest: {where}: {err['msg']} (scenegen/manifest.py)"
+            f"{path}: not a data manifest: {where}: {err['msg']} (scenegen/manifest/schema.py)"
         ) from None
     except TypeError:
         raise CoverageError(

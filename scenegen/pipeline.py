@@ -26,8 +26,7 @@ import yaml
 from scenegen import __version__, world
 from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.check.geometry import run_checks
-from scenegen.config import PipelineConfig
-from scenegen.manifest import Manifest, batch_source, write_manifest
+from scenegen.config import PipelineConfig, RealismFilter
 from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
@@ -115,6 +114,9 @@ def process_proposal(
     )
     tags = measure_tags(context, config.tags)
     checks.append(condition_check(tags, proposal.condition))
+    objects = settled_objects(model, proposal, settled.qpos)
+    if checks[-1].passed and config.realism is not None:
+        checks.append(realism_check(proposal, objects, config.realism))
     out.seconds["tag"] = time.perf_counter() - t0
     if not checks[-1].passed:
         out.rejection = Rejection.from_check(proposal.index, checks[-1])
@@ -147,23 +149,8 @@ def process_proposal(
         out.seconds["render"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    bodies = dict(free_bodies(model))
-    objects = []
-    for obj in proposal.objects:
-        adr = bodies[obj.name]
-        pos, quat = settled.qpos[adr : adr + 3], settled.qpos[adr + 3 : adr + 7]
-        moved = sum((a - b) ** 2 for a, b in zip(pos, obj.position, strict=True)) ** 0.5
-        objects.append(
-            SettledObject(
-                **obj.model_dump(exclude={"position", "quat"}),
-                position=tuple(round(float(v), 6) for v in pos),
-                quat=tuple(round(float(v), 6) for v in quat),
-                moved=round(float(moved), 6),
-                rotated=round(rotation_angle(quat, obj.quat), 6),
-            )
-        )
     if export:
-        out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, bodies)
+        out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, dict(free_bodies(model)))
     out.record = SceneRecord(
         scene_id=f"scene_{proposal.index:06d}",
         proposal_index=proposal.index,
@@ -193,6 +180,47 @@ def process_proposal(
     )
     out.seconds["store"] = time.perf_counter() - t0  # record + MJCF export; file writes are added later
     return out
+
+
+def settled_objects(model: mujoco.MjModel, proposal: SceneProposal, qpos) -> list[SettledObject]:
+    """The proposal's objects at their settled poses (``qpos``), with how far each moved and turned."""
+    bodies = dict(free_bodies(model))
+    objects = []
+    for obj in proposal.objects:
+        adr = bodies[obj.name]
+        pos, quat = qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]
+        moved = sum((a - b) ** 2 for a, b in zip(pos, obj.position, strict=True)) ** 0.5
+        objects.append(
+            SettledObject(
+                **obj.model_dump(exclude={"position", "quat"}),
+                position=tuple(round(float(v), 6) for v in pos),
+                quat=tuple(round(float(v), 6) for v in quat),
+                moved=round(float(moved), 6),
+                rotated=round(rotation_angle(quat, obj.quat), 6),
+            )
+        )
+    return objects
+
+
+def realism_check(
+    proposal: SceneProposal, objects: list[SettledObject], settings: RealismFilter
+) -> CheckResult:
+    """The per-scene realism score of a settled scene against the reference set (``unrealistic`` below
+    ``settings.min_score``; scenegen.scene_score.SceneScorer)."""
+    from scenegen.scene_score import placement_row, reference_scorer  # torch: only when the filter is on
+
+    row = placement_row(proposal.target, objects, proposal.furniture, proposal.lighting)
+    score = round(reference_scorer(settings.reference, settings.k).score(row), 6)
+    passed = score >= settings.min_score
+    return CheckResult(
+        stage="tag",
+        check="realism_score",
+        passed=passed,
+        label=None if passed else "unrealistic",
+        value=score,
+        threshold=settings.min_score,
+        detail=f"share of reference layouts at least as far from their {settings.k} nearest neighbours",
+    )
 
 
 def _camera_entry(cam, rendered: bool = True) -> dict:
@@ -332,17 +360,8 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
         outcomes.close()  # stops the pool now, not at garbage collection
         bar.close()
     wall = time.perf_counter() - start
-    source = batch_source(
-        out,
-        name=config.name,
-        pipeline={"name": config.name, "sha256": config.digest(), "file": "pipeline.yaml"},
-        generator={"kind": config.proposer.kind},
-        seed=config.seed,
-        catalog_sha=catalog.sha256,
-        predicate_version=PREDICATE_VERSION,
-    )
-    write_manifest(out / "manifest.yaml", Manifest(kind="batch", sources=[source]))
-    proposals_done = source.counts.proposals
+    write_batch_manifest(out, config, catalog.sha256)
+    proposals_done = accepted + sum(rejections.values())
     timing = {
         "wall": round(wall, 3),
         "workers": workers,
@@ -351,6 +370,20 @@ def run_batch(config: PipelineConfig, out: Path, workers: int = 1, progress: boo
     }
     atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
     return BatchSummary(out, accepted, proposals_done, rejections, seconds, accepted_seconds, wall)
+
+
+def write_batch_manifest(out: Path, config: PipelineConfig, catalog_sha: str):
+    """Derive the batch's source from its files, compute its realism checks, and write
+    ``out/manifest.yaml`` atomically (a run killed here leaves the previous manifest or none)."""
+    from scenegen.manifest import Manifest, write_manifest
+    from scenegen.manifest.derive import batch_source
+    from scenegen.manifest.realism_checks import batch_realism
+
+    source = batch_source(out, config, catalog_sha, PREDICATE_VERSION)
+    source = source.model_copy(update={"realism": batch_realism(out, config, source.checksums.root)})
+    manifest = Manifest(kind="batch", sources=[source])
+    write_manifest(out / "manifest.yaml", manifest)
+    return manifest
 
 
 def _timed(proposals: Iterator[SceneProposal], seconds: dict[str, float]) -> Iterator[SceneProposal]:

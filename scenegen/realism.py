@@ -4,7 +4,8 @@ A layout (one reference Parquet row, or a stored scene through :func:`record_row
 fixed-length vector by :func:`layout_features`; two sets of vectors are compared by a classifier
 two-sample test (:func:`c2st`: held-out accuracy of a classifier telling them apart, 0.5 when it
 cannot) and by a kernel distance (:func:`mmd`: unbiased MMD^2 with a permutation p-value).
-:func:`distort` and :func:`power` measure how small a change the tests notice.
+:func:`distort` and :func:`power` measure how small a change the tests notice. One scene's
+typicality is scenegen/scene_score.py.
 
 Pure numpy/torch: no MuJoCo simulation, no renderer. Features are in world-frame metres and radians
 (docs/realism.md lists each one with its unit).
@@ -25,6 +26,7 @@ import torch
 from scenegen.world import FURNITURE, TABLE_TOP_Z
 
 SPLITS = ("train", "heldout")
+HELDOUT_EVERY = 5  # a layout whose proposal index % 5 == 0 is held out
 SUPPORT_KINDS = ("table", "shelf", "bin", "floor", "stacked")
 FURNITURE_KINDS = tuple(sorted(FURNITURE))
 # Layout features before the per-category counts, and after them (see layout_features).
@@ -109,7 +111,7 @@ def support_kind(support: str, object_names: Sequence[str]) -> str:
 def layout_features(row: dict, categories: Sequence[str] | None = None) -> np.ndarray:
     """The feature vector (D,) of one layout, float64, in the order of :func:`feature_names`.
 
-    ``row`` has the shape of a reference Parquet row (``scenegen.reference.layout_row``): ``target``,
+    ``row`` has the shape of a reference Parquet row (``layout_row``): ``target``,
     ``objects`` (name, category, support, position, quat), ``furniture`` (kind), ``ambient`` and
     ``lights`` (colour, intensity). Every feature is a count, a share, a sum, a mean or a minimum
     over objects, so the vector does not depend on the order of the objects; it is defined for any
@@ -186,13 +188,60 @@ def feature_matrix(rows: Sequence[dict], categories: Sequence[str] | None = None
     return np.stack([layout_features(row, categories) for row in rows])
 
 
+def layout_row(record) -> dict:
+    """One reference Parquet row of a ``SceneRecord``: the request, the settled layout, the lighting and
+    every tag's measurement (``tag_<tag>``, ``value_<tag>``); the columns of the reference set."""
+    from scenegen.schema.condition import TAGS
+
+    target = next(o for o in record.objects if o.name == record.target)
+    row = {
+        "index": record.proposal_index,
+        "split": "heldout" if record.proposal_index % HELDOUT_EVERY == 0 else "train",
+        "task": record.condition.task,
+        "target_category": target.category,
+        "target_asset": target.asset,
+        "target": record.target,
+        "robot_pose": list(record.condition.robot_pose),
+        "n_objects": len(record.objects),
+        "objects": [
+            {
+                "name": o.name,
+                "asset": o.asset,
+                "category": o.category,
+                "support": o.support,
+                "resting_pose": o.resting_pose,
+                "position": list(o.position),
+                "quat": list(o.quat),
+            }
+            for o in record.objects
+        ],
+        "furniture": [
+            {"kind": f.kind, "x": f.position[0], "y": f.position[1], "yaw": f.yaw} for f in record.furniture
+        ],
+        "ambient": float(np.mean(record.lighting.ambient)),
+        "lights": [
+            {
+                "position": list(light.position),
+                "direction": list(light.direction),
+                "colour": list(light.colour),
+                "intensity": light.intensity,
+                "cast_shadow": light.cast_shadow,
+            }
+            for light in record.lighting.lights
+        ],
+    }
+    for tag in TAGS:
+        row[f"tag_{tag}"] = record.tags[tag].holds
+        row[f"value_{tag}"] = record.tags[tag].value
+    return row
+
+
 def record_row(record) -> dict:
     """A stored scene (``SceneRecord``) as a reference Parquet row, so its features can be compared.
 
-    It is ``scenegen.reference.layout_row``; a record without the full tag set (tags are not features)
+    It is :func:`layout_row`; a record without the full tag set (tags are not features)
     gets NaN tag values instead of failing.
     """
-    from scenegen.reference import layout_row
     from scenegen.schema.condition import TAGS
     from scenegen.schema.scene import TagValue
 

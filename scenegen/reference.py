@@ -23,11 +23,10 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.config import PipelineConfig
 from scenegen.pipeline import ordered_outcomes
 from scenegen.propose.base import PROPOSERS
+from scenegen.realism import HELDOUT_EVERY, layout_row  # noqa: F401 - both are part of this module's face
 from scenegen.schema.condition import ROBOT_POSES, TAGS, TASKS, Condition
-from scenegen.schema.scene import SceneProposal, SceneRecord
+from scenegen.schema.scene import SceneProposal
 from scenegen.tags import PREDICATE_VERSION
-
-HELDOUT_EVERY = 5  # proposal index % 5 == 0 -> held out
 
 
 def request_for(config: PipelineConfig, index: int, categories: tuple[str, ...]) -> Condition:
@@ -47,51 +46,6 @@ def _proposals(config: PipelineConfig) -> Iterator[SceneProposal]:
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
     for index in range(config.proposal_cap):
         yield from proposer.propose(request_for(config, index, catalog.categories), [index], config.seed)
-
-
-def layout_row(record: SceneRecord) -> dict:
-    """One Parquet row: the request, the settled layout, the lighting and every tag's measurement."""
-    target = next(o for o in record.objects if o.name == record.target)
-    row = {
-        "index": record.proposal_index,
-        "split": "heldout" if record.proposal_index % HELDOUT_EVERY == 0 else "train",
-        "task": record.condition.task,
-        "target_category": target.category,
-        "target_asset": target.asset,
-        "target": record.target,
-        "robot_pose": list(record.condition.robot_pose),
-        "n_objects": len(record.objects),
-        "objects": [
-            {
-                "name": o.name,
-                "asset": o.asset,
-                "category": o.category,
-                "support": o.support,
-                "resting_pose": o.resting_pose,
-                "position": list(o.position),
-                "quat": list(o.quat),
-            }
-            for o in record.objects
-        ],
-        "furniture": [
-            {"kind": f.kind, "x": f.position[0], "y": f.position[1], "yaw": f.yaw} for f in record.furniture
-        ],
-        "ambient": float(np.mean(record.lighting.ambient)),
-        "lights": [
-            {
-                "position": list(light.position),
-                "direction": list(light.direction),
-                "colour": list(light.colour),
-                "intensity": light.intensity,
-                "cast_shadow": light.cast_shadow,
-            }
-            for light in record.lighting.lights
-        ],
-    }
-    for tag in TAGS:
-        row[f"tag_{tag}"] = record.tags[tag].holds
-        row[f"value_{tag}"] = record.tags[tag].value
-    return row
 
 
 def build_reference(config: PipelineConfig, out: Path, workers: int = 1, progress: bool = True) -> dict:
@@ -164,24 +118,38 @@ REFERENCE_DESCRIPTION = (
 )
 
 
-def reference_source(path: Path, manifest_dir: Path, name: str = "reference"):
-    """The manifest entry of a reference Parquet file, counts and provenance read from the file."""
-    from scenegen.manifest import Counts, Source
+def reference_source(path: Path, manifest_dir: Path, name: str = "reference", recipe: Path | None = None):
+    """The manifest entry of a reference Parquet file, counts and provenance read from the file;
+    ``recipe``: the recipe file that rebuilds it (default pipelines/reference.yaml)."""
+    from scenegen.manifest.schema import FileChecksum, Generator, PipelineRef, SeedPanel, Source
+    from scenegen.paths import PIPELINES_DIR
 
     table, meta = read_reference(path)
     proposals = int(meta["proposals"])
     labels = dict(item.split("=") for item in meta["rejections"].split(",") if item)
+    splits = Counter(table.column("split").to_pylist())
     return Source(
         name=name,
         origin="reference",
         location=os.path.relpath(Path(path).resolve(), Path(manifest_dir).resolve()),
-        sha256=file_sha256(path),
-        counts=Counts(scenes=table.num_rows, rejected=proposals - table.num_rows, proposals=proposals),
         description=REFERENCE_DESCRIPTION,
-        generator={"kind": "procedural"},
-        pipeline={"name": "reference", "sha256": meta["pipeline_sha256"], "file": "pipelines/reference.yaml"},
-        seed=int(meta["seed"]),
-        rejections_by_label={k: int(v) for k, v in sorted(labels.items())},
-        catalog_sha256=meta["catalog_sha256"],
+        counts={
+            "scenes": table.num_rows,
+            "rejected": proposals - table.num_rows,
+            "proposals": proposals,
+            "splits": dict(sorted(splits.items())),
+        },
+        checksums=FileChecksum(sha256=file_sha256(path)),
         predicate_version=meta["predicate_version"],
+        catalog_sha256=meta["catalog_sha256"],
+        generator=Generator(kind="procedural"),
+        pipeline=PipelineRef(
+            name="reference",
+            file=os.path.relpath(
+                Path(recipe or PIPELINES_DIR / "reference.yaml").resolve(), Path(manifest_dir).resolve()
+            ),
+            sha256=meta["pipeline_sha256"],
+        ),
+        seed_panel=SeedPanel(seed=int(meta["seed"]), first_index=0, last_index=proposals - 1),
+        rejections_by_label={k: int(v) for k, v in sorted(labels.items())},
     )

@@ -14,6 +14,8 @@ import pytest
 
 from scenegen.coverage import CoverageError, coverage_table, main
 from scenegen.manifest import Counts, Manifest, Source, write_manifest
+from scenegen.manifest.project import DATASHEET, TRANSFER
+from scenegen.manifest.schema import FileChecksum
 from scenegen.schema.condition import TAGS
 
 # (task, tags held, scenes): 48 retrieve scenes, 19 upright, no clear; one group holds two tags.
@@ -125,7 +127,18 @@ def test_batch_with_a_missing_scene_json_is_an_error(tmp_path):
 
 
 def _source(name: str, location: str) -> Source:
-    return Source(name=name, origin="real", location=location, counts=Counts(scenes=0))
+    return Source(
+        name=name,
+        origin="real",
+        location=location,
+        counts=Counts(scenes=0),
+        checksums=FileChecksum(sha256="0" * 64),
+        collection="hand-written test scenes",
+    )
+
+
+def _project(sources: list[Source]) -> Manifest:
+    return Manifest(kind="project", sources=sources, datasheet=DATASHEET, transfer=TRANSFER)
 
 
 def test_manifest_sums_its_sources(tmp_path):
@@ -136,7 +149,7 @@ def test_manifest_sums_its_sources(tmp_path):
         _source("real", "data/real.parquet"),
         _source("later", "not_yet_here"),
     ]
-    write_manifest(tmp_path / "data_manifest.yaml", Manifest(kind="project", sources=sources))
+    write_manifest(tmp_path / "data_manifest.yaml", _project(sources))
     table = coverage_table(tmp_path / "data_manifest.yaml")
     assert table.total == 97
     assert dict(table.scenes) == {"retrieve": 48, "upright": 19, "clear": 30}
@@ -158,7 +171,7 @@ def test_manifest_location_outside_its_folder_is_refused(tmp_path, location):
     folder.mkdir()
     write_batch(tmp_path / "outside", scenes_of(GROUPS))
     (folder / "link").symlink_to(tmp_path / "outside")  # a link out of the folder is outside too
-    write_manifest(folder / "data_manifest.yaml", Manifest(kind="project", sources=[_source("x", location)]))
+    write_manifest(folder / "data_manifest.yaml", _project([_source("x", location)]))
     with pytest.raises(CoverageError, match="outside the manifest's folder") as info:
         coverage_table(folder / "data_manifest.yaml")
     assert "\n" not in str(info.value) and "source 'x'" in str(info.value)

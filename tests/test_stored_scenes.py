@@ -373,8 +373,8 @@ def test_manifest_counts_equal_the_files(demo_batch: Path):
     assert source.counts.rejected == len(rejections)
     assert source.counts.proposals == len(scenes) + len(rejections)
     assert source.rejections_by_label == dict(Counter(r["label"] for r in rejections))
-    assert source.origin == "synthetic" and source.seed == 0
+    assert source.origin == "synthetic" and source.seed_panel.seed == 0
     pipeline = yaml.safe_load((demo_batch / "pipeline.yaml").read_text())
     assert pipeline["n"] == N_SCENES and pipeline["seed"] == 0
     for scene in scenes:
-        assert read_record(scene)["provenance"]["pipeline_sha256"] == source.pipeline["sha256"]
+        assert read_record(scene)["provenance"]["pipeline_sha256"] == source.pipeline.sha256

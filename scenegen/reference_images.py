@@ -1,0 +1,169 @@
+"""The rendered reference scenes behind the image-statistics check: the first N layouts of the
+reference set, rendered exactly as the reference recipe makes them, reduced to their image statistics
+(scenegen/image_stats.py) in ``assets/reference/image_stats.json`` (committed: nothing is downloaded
+at run time).
+
+Rebuild the committed file (46 s on 2 cores)::
+
+    MUJOCO_GL=egl python -m scenegen.reference_images --n 60 --workers 2
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from scenegen.image_stats import (
+    IMAGE_STAT_NAMES,
+    REFERENCE_IMAGE_STATS,
+    REFERENCE_PARQUET,
+    REFERENCE_RECIPE,
+    _decode_rgb,
+    image_statistics,
+)
+from scenegen.paths import PROJECT_ROOT
+
+
+def _shown(path: Path) -> str:
+    """A path as written into the reference file: relative to the project when inside it."""
+    path = Path(path).resolve()
+    return path.relative_to(PROJECT_ROOT).as_posix() if path.is_relative_to(PROJECT_ROOT) else str(path)
+
+
+def _command(n: int, out: Path, recipe: Path, reference: Path) -> str:
+    """The command that rebuilds a reference file (workers do not change it: renders are bit-identical)."""
+    command = f"MUJOCO_GL=egl python -m scenegen.reference_images --n {n} --out {_shown(out)}"
+    if recipe.resolve() != REFERENCE_RECIPE.resolve():
+        command += f" --recipe {_shown(recipe)}"
+    if reference.resolve() != REFERENCE_PARQUET.resolve():
+        command += f" --reference {_shown(reference)}"
+    return command
+
+
+def _reference_outcomes(config, n: int, workers: int) -> Iterator:
+    """The first ``n`` accepted outcomes of the reference proposals, rendered."""
+    from scenegen.pipeline import ordered_outcomes
+    from scenegen.reference import _proposals  # the reference set's own proposals, unchanged
+
+    rendered = config.model_copy(update={"render": True})
+    outcomes = ordered_outcomes(_proposals(config), rendered, workers, export=False)
+    accepted = 0
+    try:
+        for outcome in outcomes:
+            if outcome.record is None:
+                continue
+            yield outcome
+            accepted += 1
+            if accepted == n:
+                return
+    finally:
+        outcomes.close()
+
+
+def build_reference_image_stats(
+    n: int,
+    out: Path = REFERENCE_IMAGE_STATS,
+    workers: int = 1,
+    recipe: Path = REFERENCE_RECIPE,
+    reference: Path = REFERENCE_PARQUET,
+    images: Path | None = None,
+) -> dict:
+    """Render the first ``n`` accepted layouts of the reference set and write their image statistics
+    to ``out`` (JSON, atomically); returns what was written, plus ``seconds``. ``images``: also write
+    each RGB image there as ``<proposal index>_<camera>_rgb.png`` (to look at, or to test with).
+
+    The layouts are made exactly as ``scenegen reference`` makes them (its proposals, the recipe's
+    check, settle and tag) with rendering switched on; their proposal indices must equal the first
+    ``n`` ``index`` values of the reference Parquet file, else ValueError (the recipe or the code
+    changed since the Parquet file was built). Needs off-screen GL (MUJOCO_GL=egl).
+    """
+    import pyarrow.parquet as pq
+
+    from scenegen.config import load_pipeline
+    from scenegen.render import RENDER_SETTINGS
+    from scenegen.store import atomic_write, sha256_file
+
+    if n < 1:
+        raise ValueError(f"n={n}: render at least one reference layout")
+    recipe, reference, out = Path(recipe), Path(reference), Path(out)
+    config = load_pipeline(recipe)
+    expected = pq.read_table(reference, columns=["index"]).column("index").to_pylist()[:n]
+    if len(expected) < n:
+        raise ValueError(f"n={n}: {reference} holds only {len(expected)} layouts")
+    if images is not None:
+        images = Path(images)
+        images.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    rows, indices, cameras = [], [], []
+    for outcome in _reference_outcomes(config, n, workers):
+        record = outcome.record
+        for camera in record.cameras:
+            name = camera["images"]["rgb"]
+            rgb = _decode_rgb(outcome.images[name], f"scene_{record.proposal_index:06d}/{name}")
+            if images is not None:
+                atomic_write(images / f"{record.proposal_index:06d}_{name}", outcome.images[name])
+            rows.append([round(float(v), 6) for v in image_statistics(rgb)])
+            indices.append(record.proposal_index)
+            cameras.append(camera["name"])
+    got = list(dict.fromkeys(indices))
+    if got != expected:
+        raise ValueError(
+            f"the rendered reference layouts are proposals {got[:10]}..., but the first {n} rows of "
+            f"{reference} are {expected[:10]}...; {recipe} or the pipeline changed since the Parquet "
+            "file was built: rebuild it (scenegen reference) or restore the recipe"
+        )
+    result = {
+        "description": (
+            "image statistics (scenegen.image_stats.image_statistics) of the rendered RGB images of the "
+            f"first {n} accepted reference layouts, every camera"
+        ),
+        "stat_names": list(IMAGE_STAT_NAMES),
+        "n": n,
+        "scene_index": indices,
+        "camera": cameras,
+        "reference": _shown(reference),
+        "reference_sha256": sha256_file(reference),
+        "recipe": _shown(recipe),
+        "recipe_sha256": config.digest(),
+        "rendered_with": {"render": True},
+        "render_settings": RENDER_SETTINGS,
+        "command": _command(n, out, recipe, reference),
+        "rows": rows,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out, json.dumps(result, indent=1) + "\n")
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    return result
+
+
+def _main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m scenegen.reference_images",
+        description="render the first N reference layouts and write their image statistics (JSON)",
+    )
+    parser.add_argument("--n", type=int, default=60, help="reference layouts to render (default 60)")
+    parser.add_argument("--out", type=Path, default=REFERENCE_IMAGE_STATS)
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--recipe", type=Path, default=REFERENCE_RECIPE)
+    parser.add_argument("--reference", type=Path, default=REFERENCE_PARQUET)
+    parser.add_argument("--images", type=Path, default=None, help="also write the RGB images here (PNG)")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        result = build_reference_image_stats(
+            args.n, args.out, args.workers, args.recipe, args.reference, args.images
+        )
+    except ValueError as exc:
+        print(f"error: {exc}")
+        return 2
+    print(f"wrote {args.out}: {len(result['rows'])} rows of {result['n']} scenes in {result['seconds']} s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())

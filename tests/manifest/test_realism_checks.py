@@ -1,0 +1,81 @@
+"""The batch realism checks can fail: the reference set's halves pass them, distorted batches fail them.
+
+Layouts: 100 training-split reference layouts of the demo request (retrieve the spoon) against the
+held-out ones, as they are, then spread 1.5x over the table and under lights at half strength.
+The image-statistics check's halves and darkened / tinted renders: tests/test_image_stats.py.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+
+from scenegen.manifest.realism_checks import (
+    C2ST_THRESHOLD,
+    MIN_SAMPLES,
+    MMD_THRESHOLD,
+    REFERENCE_TABLE,
+    layout_checks,
+    reference_subset,
+)
+from scenegen.realism import load_rows
+from scenegen.schema.condition import Condition
+
+SHA = "0" * 64
+SPOON = Condition(task="retrieve", target="spoon")
+
+
+@pytest.fixture(scope="module")
+def rows() -> list[dict]:
+    return load_rows(REFERENCE_TABLE, None)
+
+
+def spoon_train(rows: list[dict], n: int = 100) -> list[dict]:
+    return [r for r in rows if r["split"] == "train" and r["target_category"] == "spoon"][:n]
+
+
+def spread_and_dim(rows: list[dict], spread: float = 1.5, light: float = 0.5) -> list[dict]:
+    out = copy.deepcopy(rows)
+    for row in out:
+        for o in row["objects"]:
+            o["position"] = [o["position"][0] * spread, o["position"][1] * spread, o["position"][2]]
+        row["ambient"] *= light
+        for lamp in row["lights"]:
+            lamp["intensity"] *= light
+    return out
+
+
+def by_metric(checks) -> dict:
+    return {c.metric: c for c in checks}
+
+
+def test_the_reference_subset_follows_the_request(rows):
+    subset, description = reference_subset(rows, SPOON)
+    assert description == "split=heldout target=spoon tags=any" and len(subset) >= 50
+    assert all(r["target_category"] == "spoon" and r["split"] == "heldout" for r in subset)
+    toppled = Condition(task="retrieve", target="mug", tags={"toppled": "required", "clutter": "forbidden"})
+    subset, description = reference_subset(rows, toppled)
+    assert all(r["tag_toppled"] and not r["tag_clutter"] for r in subset)
+    assert "+toppled" in description and "-clutter" in description and len(subset) >= 50
+
+
+def test_reference_layouts_pass_the_layout_checks(rows):
+    checks = by_metric(layout_checks(spoon_train(rows), SHA, SPOON))
+    assert checks["layout_c2st"].status == "passed" and checks["layout_c2st"].value <= C2ST_THRESHOLD
+    assert checks["layout_mmd"].status == "passed" and checks["layout_mmd"].value <= MMD_THRESHOLD
+    assert checks["layout_c2st"].samples == {
+        "batch": 100,
+        "reference": checks["layout_c2st"].samples["reference"],
+    }
+
+
+def test_distorted_layouts_fail_the_layout_checks(rows):
+    checks = by_metric(layout_checks(spread_and_dim(spoon_train(rows)), SHA, SPOON))
+    assert checks["layout_c2st"].status == "failed", checks["layout_c2st"]
+    assert checks["layout_mmd"].status == "failed", checks["layout_mmd"]
+
+
+def test_a_small_batch_is_recorded_as_insufficient(rows):
+    checks = layout_checks(spread_and_dim(spoon_train(rows, MIN_SAMPLES - 1)), SHA, SPOON)
+    assert {c.status for c in checks} == {"insufficient"}
