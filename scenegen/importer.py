@@ -38,6 +38,7 @@ from pydantic import (
 
 from scenegen import __version__, world
 from scenegen.assets.catalog import Catalog, load_catalog
+from scenegen.core import layout
 from scenegen.schema.condition import ROBOT_POSES, TAGS, Condition, known_pose_name, known_task
 from scenegen.schema.scene import (
     FurniturePlacement,
@@ -81,7 +82,7 @@ class _Input(BaseModel):
 class RealTable(_Input):
     """The table the scene was measured on: full ``size`` [x, y] (m) and ``top_z``, its top's height (m).
 
-    scenegen simulates one table (``world.TABLE_SIZE``, ``world.TABLE_TOP_Z``); a record measured on
+    scenegen simulates one table (``layout.TABLE_SIZE``, ``layout.TABLE_TOP_Z``); a record measured on
     another table is refused rather than rescaled, since every tag is measured against that table.
     """
 
@@ -91,7 +92,7 @@ class RealTable(_Input):
     @field_validator("size")
     @classmethod
     def _simulated_size(cls, size: tuple[float, float]) -> tuple[float, float]:
-        want = world.TABLE_SIZE[:2]
+        want = layout.TABLE_SIZE[:2]
         if any(abs(a - b) > TABLE_TOLERANCE for a, b in zip(size, want, strict=True)):
             raise ValueError(
                 f"{size[0]:g} x {size[1]:g} m does not match the simulated table {want[0]:g} x {want[1]:g} m "
@@ -102,9 +103,9 @@ class RealTable(_Input):
     @field_validator("top_z")
     @classmethod
     def _simulated_height(cls, top_z: float) -> float:
-        if abs(top_z - world.TABLE_TOP_Z) > TABLE_TOLERANCE:
+        if abs(top_z - layout.TABLE_TOP_Z) > TABLE_TOLERANCE:
             raise ValueError(
-                f"{top_z:g} m does not match the simulated table top {world.TABLE_TOP_Z:g} m "
+                f"{top_z:g} m does not match the simulated table top {layout.TABLE_TOP_Z:g} m "
                 f"(tolerance {TABLE_TOLERANCE:g} m); scenes from another table cannot be imported"
             )
         return top_z
@@ -150,8 +151,8 @@ class RealFurniture(_Input):
     @field_validator("kind")
     @classmethod
     def _known_kind(cls, kind: str) -> str:
-        if kind not in world.FURNITURE:
-            raise ValueError(f"unknown furniture {kind!r}; valid kinds: {', '.join(world.FURNITURE)}")
+        if kind not in layout.FURNITURE:
+            raise ValueError(f"unknown furniture {kind!r}; valid kinds: {', '.join(layout.FURNITURE)}")
         return kind
 
 
@@ -319,14 +320,14 @@ def _one_line(message: str) -> str:
 
 
 def _support(
-    obj: ObjectPlacement, bottom: float, surfaces: dict[str, world.Surface]
-) -> tuple[str, world.Surface | None]:
+    obj: ObjectPlacement, bottom: float, surfaces: dict[str, layout.Surface]
+) -> tuple[str, layout.Surface | None]:
     """The highest surface at or just below the object's lowest point with the object's centre over it.
 
     Measured poses are noisy, so a surface up to 5 mm above the lowest point still counts, and the
     centre may overhang the surface region by up to 1 cm; nothing within ``SUPPORT_GAP`` gives "none".
     """
-    best: tuple[str, world.Surface | None] = ("none", None)
+    best: tuple[str, layout.Surface | None] = ("none", None)
     for name, surface in surfaces.items():
         if name == obj.name or surface.z > bottom + 0.005 or bottom - surface.z > SUPPORT_GAP:
             continue
@@ -342,7 +343,7 @@ def _placements(
 ) -> tuple[list[ObjectPlacement], list[FurniturePlacement]]:
     """Objects with their support and nearest resting pose, and furniture, as the pipeline names them."""
     from scenegen.assets.catalog import convex_part_vertices
-    from scenegen.check.geometry import quat_to_matrix
+    from scenegen.core.rotations import quat_to_matrix
     from scenegen.propose.base import snap_to_rest
 
     furniture = [
@@ -359,7 +360,7 @@ def _placements(
         )
         for o in record.objects
     ]
-    surfaces = world.support_surfaces(furniture, raw, catalog)
+    surfaces = layout.support_surfaces(furniture, raw, catalog)
     objects = []
     for obj in raw:
         asset = catalog.get(obj.asset)
@@ -369,7 +370,7 @@ def _placements(
         # Resting pose: the catalog pose nearest in orientation (yaw aside); the projection distance says
         # how far the measured pose is from lying exactly on it on its support (m).
         _, _, pose, distance = snap_to_rest(
-            asset, obj.position, obj.quat, surface or world.support_surfaces(())["table"]
+            asset, obj.position, obj.quat, surface or layout.support_surfaces(())["table"]
         )
         objects.append(
             obj.model_copy(

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from scenegen.world import FURNITURE, TABLE_TOP_Z
+from scenegen.core.layout import FURNITURE, TABLE_TOP_Z
 
 SPLITS = ("train", "heldout")
 HELDOUT_EVERY = 5  # a layout whose proposal index % 5 == 0 is held out
@@ -116,7 +116,7 @@ def layout_features(row: dict, categories: Sequence[str] | None = None) -> np.nd
     ``lights`` (colour, intensity). Every feature is a count, a share, a sum, a mean or a minimum
     over objects, so the vector does not depend on the order of the objects; it is defined for any
     number of them. Positions are world-frame metres: the table centre is the origin of x and y, and
-    heights are measured from the table top (``world.TABLE_TOP_Z``).
+    heights are measured from the table top (``layout.TABLE_TOP_Z``).
 
     - ``n_objects``: number of objects (count).
     - ``target_x``, ``target_y``: the target's centre relative to the table centre (m).

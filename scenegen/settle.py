@@ -16,8 +16,8 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from scenegen import world
 from scenegen.assets.catalog import Catalog
+from scenegen.core import layout
 from scenegen.schema.scene import CheckResult, Contact, SceneProposal
 
 EE_BODY = "gripper0_eef"
@@ -139,7 +139,7 @@ def settle(
         )
         return SettleOutcome(checks, False, qpos, ctrl, stats)
 
-    surfaces = world.support_surfaces(proposal.furniture, proposal.objects, catalog)
+    surfaces = layout.support_surfaces(proposal.furniture, proposal.objects, catalog)
     placements = {o.name: o for o in proposal.objects}
     worst_drop, drop_who, worst_move, move_who, worst_rot = -math.inf, "", 0.0, "", 0.0
     for name, adr in bodies:

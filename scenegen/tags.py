@@ -8,7 +8,7 @@ tag holds (decided on the value rounded to 6 decimals, as stored, so the two alw
 data tagged by different predicates is never mixed; it is bumped by hand when a predicate's output
 changes, and tests/test_predicate_panel.py fails until it is.
 
-Frames: MuJoCo world, metres; the table top is the plane z = ``world.TABLE_TOP_Z``.
+Frames: MuJoCo world, metres; the table top is the plane z = ``layout.TABLE_TOP_Z``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from pydantic import BaseModel, ConfigDict
 
 from scenegen import world
 from scenegen.assets.catalog import Catalog
-from scenegen.check.geometry import quat_to_matrix
+from scenegen.core import layout
+from scenegen.core.rotations import quat_to_matrix
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     CheckResult,
@@ -141,8 +142,8 @@ def _hull_points(ctx: TagContext) -> np.ndarray:
 def near_edge(ctx: TagContext, s: TagSettings) -> TagValue:
     """Smallest distance (m) from the target's footprint to a table edge; negative = overhanging."""
     pts = _hull_points(ctx)
-    hx, hy = world.TABLE_SIZE[0] / 2, world.TABLE_SIZE[1] / 2
-    on_table = pts[:, 2].min() > world.TABLE_TOP_Z - 0.01
+    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
+    on_table = pts[:, 2].min() > layout.TABLE_TOP_Z - 0.01
     margin = float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
     return _measured(margin, s.near_edge_distance, "m", lambda v, t: on_table and v <= t)
 
@@ -152,7 +153,7 @@ def under_overhang(ctx: TagContext, s: TagSettings) -> TagValue:
     """Fraction of the target's footprint points that have a furniture box above the target's top."""
     pts = _hull_points(ctx)
     top = pts[:, 2].max()
-    boxes = [box for piece in ctx.furniture for box in world.furniture_boxes(piece)]
+    boxes = [box for piece in ctx.furniture for box in layout.furniture_boxes(piece)]
     covered = 0
     for p in pts:
         for center, rot, half in boxes:
@@ -278,7 +279,7 @@ def low_light(ctx: TagContext, s: TagSettings) -> TagValue:
 @predicate("on_floor")
 def on_floor(ctx: TagContext, s: TagSettings) -> TagValue:
     """How far (m) the target's centre is below the table top; holds for a target on the floor."""
-    drop = world.TABLE_TOP_Z - float(ctx.data.body(ctx.target).xpos[2])
+    drop = layout.TABLE_TOP_Z - float(ctx.data.body(ctx.target).xpos[2])
     return _measured(drop, s.on_floor_drop, "m", operator.ge)
 
 

@@ -15,16 +15,14 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from scenegen.assets.catalog import Asset, Catalog
+from scenegen.core.layout import FURNITURE, TABLE_SIZE, TABLE_TOP_Z
 from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement
 
-TABLE_SIZE = (0.8, 1.0, 0.05)  # full x, y extents and thickness (m)
-TABLE_TOP_Z = 0.8
 TIMESTEP = 0.002
 ROBOT_PREFIXES = ("robot0_", "gripper0_")
 ARM_JOINTS = tuple(f"robot0_joint{i}" for i in range(1, 8))
@@ -50,148 +48,6 @@ CONTACT_OPTIONS = {
 # Geom groups: visual geoms are in group 1 (rendered), collision parts of objects in group 3
 # (hidden in renders). Furniture boxes are exact primitives, so one geom serves both.
 VISUAL_GROUP, COLLISION_GROUP = 1, 3
-
-
-@dataclass(frozen=True)
-class Box:
-    """An axis-aligned box in a furniture body's frame: centre and half sizes (m)."""
-
-    center: tuple[float, float, float]
-    half: tuple[float, float, float]
-
-
-@dataclass(frozen=True)
-class FurnitureKind:
-    """Boxes of a furniture piece (its frame: origin at the centre of its footprint on the table) and
-    the surface objects can rest on (height above the table top, half extents of its inner region)."""
-
-    boxes: tuple[Box, ...]
-    surface_height: float
-    surface_half: tuple[float, float]
-    rgba: tuple[float, float, float, float]
-
-
-def _shelf() -> FurnitureKind:
-    depth, width, height, t = 0.26, 0.42, 0.24, 0.02
-    return FurnitureKind(
-        boxes=(
-            Box((0.0, -(width - t) / 2, (height - t) / 2), (depth / 2, t / 2, (height - t) / 2)),
-            Box((0.0, (width - t) / 2, (height - t) / 2), (depth / 2, t / 2, (height - t) / 2)),
-            Box((0.0, 0.0, height - t / 2), (depth / 2, width / 2, t / 2)),  # the overhanging board
-        ),
-        surface_height=height,
-        surface_half=(depth / 2, width / 2),
-        rgba=(0.55, 0.38, 0.22, 1.0),
-    )
-
-
-def _bin() -> FurnitureKind:
-    lx, ly, h, t = 0.24, 0.30, 0.08, 0.01
-    return FurnitureKind(
-        boxes=(
-            Box((0.0, 0.0, t / 2), (lx / 2, ly / 2, t / 2)),
-            Box((-(lx - t) / 2, 0.0, h / 2), (t / 2, ly / 2, h / 2)),
-            Box(((lx - t) / 2, 0.0, h / 2), (t / 2, ly / 2, h / 2)),
-            Box((0.0, -(ly - t) / 2, h / 2), (lx / 2, t / 2, h / 2)),
-            Box((0.0, (ly - t) / 2, h / 2), (lx / 2, t / 2, h / 2)),
-        ),
-        surface_height=t,
-        surface_half=(lx / 2 - t, ly / 2 - t),
-        rgba=(0.3, 0.35, 0.4, 1.0),
-    )
-
-
-FURNITURE: dict[str, FurnitureKind] = {"shelf": _shelf(), "bin": _bin()}
-
-
-@dataclass(frozen=True)
-class Surface:
-    """A horizontal support surface in the world frame: height z, centre, half extents, yaw (rad)."""
-
-    name: str
-    z: float
-    center: tuple[float, float]
-    half: tuple[float, float]
-    yaw: float = 0.0
-
-    def local_xy(self, xy: Sequence[float]) -> np.ndarray:
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        dx, dy = xy[0] - self.center[0], xy[1] - self.center[1]
-        return np.array([c * dx + s * dy, -s * dx + c * dy])
-
-    def margin(self, xy: Sequence[float]) -> float:
-        """Signed distance (m) from a point to the surface's boundary; positive inside."""
-        local = np.abs(self.local_xy(xy))
-        return float(min(self.half[0] - local[0], self.half[1] - local[1]))
-
-
-# The floor strip beside the table (+y side) where an object may lie on the floor (``on_floor``).
-FLOOR = Surface("floor", 0.0, (0.0, TABLE_SIZE[1] / 2 + 0.18), (0.35, 0.12))
-
-
-def support_surfaces(
-    furniture: Sequence[FurniturePlacement],
-    objects: Sequence[ObjectPlacement] = (),
-    catalog: Catalog | None = None,
-) -> dict[str, Surface]:
-    """Surfaces objects can rest on, keyed by name: ``table``, ``floor``, each furniture piece, and
-    (given the catalog) the flat top of each object, under the object's name (stacking)."""
-    surfaces = {
-        "table": Surface("table", TABLE_TOP_Z, (0.0, 0.0), (TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2)),
-        "floor": FLOOR,
-    }
-    for piece in furniture:
-        kind = FURNITURE[piece.kind]
-        surfaces[piece.name] = Surface(
-            piece.name,
-            TABLE_TOP_Z + kind.surface_height,
-            (piece.position[0], piece.position[1]),
-            kind.surface_half,
-            piece.yaw,
-        )
-    if catalog is not None:
-        for obj in objects:
-            surfaces[obj.name] = object_top_surface(catalog, obj)
-    return surfaces
-
-
-def object_top_surface(catalog: Catalog, obj: ObjectPlacement, tolerance: float = 0.0015) -> Surface:
-    """The top of an object as a support: its highest convex-part vertices (within ``tolerance``),
-    bounded by a rectangle in the object's yaw frame. A pointed or round top gives a tiny region."""
-    from scenegen.assets.catalog import convex_part_vertices
-    from scenegen.check.geometry import quat_to_matrix
-
-    rot = quat_to_matrix(obj.quat)
-    pts = np.concatenate(convex_part_vertices(catalog.root, obj.asset)) * obj.scale @ rot.T
-    top = pts[pts[:, 2] >= pts[:, 2].max() - tolerance]
-    x_axis = rot[:, 0] if np.hypot(rot[0, 0], rot[1, 0]) > 1e-6 else rot[:, 1]
-    yaw = math.atan2(x_axis[1], x_axis[0])
-    c, s = math.cos(yaw), math.sin(yaw)
-    local = top[:, :2] @ np.array([[c, -s], [s, c]])  # world offsets -> yaw frame
-    lo, hi = local.min(axis=0), local.max(axis=0)
-    mid = (lo + hi) / 2
-    center = np.array([c * mid[0] - s * mid[1], s * mid[0] + c * mid[1]]) + obj.position[:2]
-    return Surface(
-        obj.name,
-        float(obj.position[2] + pts[:, 2].max()),
-        (float(center[0]), float(center[1])),
-        (float((hi - lo)[0] / 2), float((hi - lo)[1] / 2)),
-        yaw,
-    )
-
-
-def furniture_boxes(piece: FurniturePlacement) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """World-frame boxes of a furniture piece: (centre (3,), rotation (3, 3), half sizes (3,))."""
-    rot = _yaw_matrix(piece.yaw)
-    origin = np.array([piece.position[0], piece.position[1], TABLE_TOP_Z])
-    return [
-        (origin + rot @ np.array(box.center), rot, np.array(box.half)) for box in FURNITURE[piece.kind].boxes
-    ]
-
-
-def _yaw_matrix(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def _quiet_robosuite() -> None:

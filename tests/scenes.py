@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from scenegen import world
 from scenegen.assets.catalog import Catalog
+from scenegen.core import layout
 from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.schema.condition import Condition
@@ -46,7 +46,7 @@ def place(
     With ``check_pose`` the snap must keep resting pose ``pose``.
     """
     a = catalog.get(asset)
-    surface = world.support_surfaces(furniture, below, catalog)[support]
+    surface = layout.support_surfaces(furniture, below, catalog)[support]
     raw_quat = quat_mul(yaw_quat(yaw), np.asarray(a.resting_poses[pose].quat))
     position, quat, index, _ = snap_to_rest(a, (x, y, 0.0), raw_quat, surface, scale)
     if check_pose:

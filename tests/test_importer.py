@@ -12,6 +12,7 @@ import pytest
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
+from scenegen.core import layout
 from scenegen.coverage import coverage_table
 from scenegen.importer import ImportFormatError, import_real, main, measure_record, read_records
 from scenegen.reference import file_sha256, layout_row
@@ -43,7 +44,7 @@ def test_tags_are_recomputed_at_the_measured_poses(imported):
     assert held(rows[SPOON]) == {"under_overhang"}
     assert rows[SPOON]["value_under_overhang"] == 1.0  # entirely under the shelf board
     assert held(rows[CAN]) == {"on_floor"}
-    assert rows[CAN]["value_on_floor"] == pytest.approx(world.TABLE_TOP_Z - 0.05)
+    assert rows[CAN]["value_on_floor"] == pytest.approx(layout.TABLE_TOP_Z - 0.05)
     # No record gives lighting but the mug's: the default is a well-lit room, never low_light.
     assert rows[SPOON]["value_low_light"] >= 0.25 and rows[CAN]["value_low_light"] >= 0.25
 
@@ -256,7 +257,7 @@ def test_main_on_a_bad_file_returns_2_with_one_line(tmp_path, capsys):
 def test_example_poses_rest_on_the_catalog_heights():
     """The hand-written z of each object is its support's height plus its resting pose's height."""
     catalog = load_catalog()
-    heights = {"table": world.TABLE_TOP_Z, "floor": 0.0, "bin": world.TABLE_TOP_Z + 0.01}
+    heights = {"table": layout.TABLE_TOP_Z, "floor": 0.0, "bin": layout.TABLE_TOP_Z + 0.01}
     for i, record in enumerate(read_records(EXAMPLE)):
         scene = measure_record(record, i, catalog)
         for obj in scene.objects:

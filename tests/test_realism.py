@@ -13,7 +13,7 @@ from scipy.stats import binomtest
 
 from scenegen import realism
 from scenegen.assets.catalog import load_catalog
-from scenegen.world import TABLE_TOP_Z
+from scenegen.core.layout import TABLE_TOP_Z
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RECIPE = REPO_ROOT / "pipelines" / "reference.yaml"

@@ -11,6 +11,7 @@ import scenes
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
+from scenegen.core import layout
 from scenegen.settle import SettleSettings, contact_configuration, passive_test, settle
 
 SETTINGS = SettleSettings()
@@ -111,7 +112,7 @@ def test_object_hanging_over_the_edge_falls_off(catalog):
     # unsupported, so it tips over the edge and lands on the floor well within max_time (~0.9 s measured),
     # where it comes to rest. Settling therefore sees it still and ~0.77 m below the table top: fell_off,
     # not the "still" check's unstable (that would need it to be still moving at max_time).
-    edge = world.TABLE_SIZE[0] / 2
+    edge = layout.TABLE_SIZE[0] / 2
     model, _, outcome = run_settle(catalog, [place(catalog, "box", "small_box", edge + 0.006, 0.0)])
     assert not outcome.passed
     assert [c.label for c in outcome.checks if not c.passed] == ["fell_off"]
@@ -127,7 +128,7 @@ def test_object_hanging_over_the_edge_falls_off(catalog):
 
 def test_object_mostly_on_the_table_stays(catalog):
     # The counterpart of the overhang case: 40% over the edge, the centre of mass still over the table.
-    edge = world.TABLE_SIZE[0] / 2
+    edge = layout.TABLE_SIZE[0] / 2
     _, _, outcome = run_settle(catalog, [place(catalog, "box", "small_box", edge - 0.006, 0.0)])
     assert outcome.passed, outcome.checks
 

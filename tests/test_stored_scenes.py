@@ -20,6 +20,7 @@ import pytest
 import yaml
 
 from scenegen import paths, world
+from scenegen.core import layout
 from scenegen.manifest import read_manifest
 from scenegen.schema.condition import PANDA_JOINT_LIMITS
 from scenegen.schema.scene import REJECTION_LABELS, FurniturePlacement
@@ -78,7 +79,9 @@ def at_keyframe(model: mujoco.MjModel) -> mujoco.MjData:
     return data
 
 
-def lowest_point_over(model: mujoco.MjModel, data: mujoco.MjData, body: str, surface: world.Surface) -> float:
+def lowest_point_over(
+    model: mujoco.MjModel, data: mujoco.MjData, body: str, surface: layout.Surface
+) -> float:
     """Lowest world z of a body's collision meshes (group 3 mesh geoms) over its support's region.
 
     Vertices outside the surface's region (an object overhanging the table edge or a shelf board)
@@ -194,7 +197,7 @@ def test_objects_rest_on_their_support(scenes):
     problems = []
     for scene, record, model in scenes:
         data = at_keyframe(model)
-        surfaces = world.support_surfaces([FurniturePlacement(**f) for f in record["furniture"]])
+        surfaces = layout.support_surfaces([FurniturePlacement(**f) for f in record["furniture"]])
         for obj in record["objects"]:
             assert obj["support"] in surfaces, f"{scene.name}: {obj['name']} on unknown support"
             surface = surfaces[obj["support"]]

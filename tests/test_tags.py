@@ -23,7 +23,8 @@ from scenes import place, proposal
 
 from scenegen import tags, world
 from scenegen.assets.catalog import Catalog, load_catalog
-from scenegen.check.geometry import quat_to_matrix
+from scenegen.core import layout
+from scenegen.core.rotations import quat_to_matrix
 from scenegen.propose.procedural import DEFAULT_CAMERAS, FURNITURE_HOME
 from scenegen.render import SceneRenderer, segmentation_ids
 from scenegen.schema.condition import RARE_TAGS, Condition
@@ -43,9 +44,9 @@ MAIN = DEFAULT_CAMERAS[0]  # "front": x = 1.25, looking at -x
 FRONT = Camera(name="front", position=MAIN.position, lookat=MAIN.lookat, width=160, height=120)
 SX, SY = FURNITURE_HOME["shelf"]
 SHELF = FurniturePlacement(name="shelf", kind="shelf", position=(SX, SY, 0.0))
-HX, HY = world.TABLE_SIZE[0] / 2, world.TABLE_SIZE[1] / 2
+HX, HY = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
 BOX_HALF = 0.03  # small_box footprint half side (m); 0.05 tall
-BOARD_UNDERSIDE = world.TABLE_TOP_Z + 0.22  # the shelf board spans 0.22..0.24 m above the table top
+BOARD_UNDERSIDE = layout.TABLE_TOP_Z + 0.22  # the shelf board spans 0.22..0.24 m above the table top
 
 # A lamp straight above the table centre; with ambient 0.3 no scene lit by it is low_light.
 LAMP = Light(position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), intensity=1.0)
@@ -160,7 +161,7 @@ def box_overhanging(c):
 
 @recipe
 def box_on_floor(c):
-    return Recipe([place(c, "box", "small_box", 0.1, world.FLOOR.center[1], support="floor")])
+    return Recipe([place(c, "box", "small_box", 0.1, layout.FLOOR.center[1], support="floor")])
 
 
 @recipe
@@ -429,7 +430,7 @@ def test_on_floor_holds_for_an_object_on_the_floor_strip(scenes):
     assert ("box", "world", "rests_on") in {(c.a, c.b, c.kind) for c in scene.contacts}
     value = scene.tag("on_floor")
     assert value.holds and value.unit == "m"
-    assert value.value == pytest.approx(world.TABLE_TOP_Z - 0.025, abs=1e-6)
+    assert value.value == pytest.approx(layout.TABLE_TOP_Z - 0.025, abs=1e-6)
 
 
 def test_on_floor_does_not_hold_on_the_table(scenes):
@@ -440,7 +441,7 @@ def test_on_floor_does_not_hold_on_the_table(scenes):
 
 def test_on_floor_threshold_is_inclusive(scenes):
     scene = scenes["box_on_floor"]
-    drop = world.TABLE_TOP_Z - float(scene.data.body("box").xpos[2])
+    drop = layout.TABLE_TOP_Z - float(scene.data.body("box").xpos[2])
     assert scene.tag("on_floor", on_floor_drop=drop).holds
     assert not scene.tag("on_floor", on_floor_drop=above(drop)).holds
 
@@ -454,7 +455,7 @@ def test_box_settled_on_a_box_is_stacked(scenes):
     value = scene.tag("stacked")
     assert value.holds and value.value == 1.0 == value.threshold  # one support: at the threshold
     # It came to rest on top of the other box.
-    assert scene.data.body("top").xpos[2] == pytest.approx(world.TABLE_TOP_Z + 0.075, abs=2e-3)
+    assert scene.data.body("top").xpos[2] == pytest.approx(layout.TABLE_TOP_Z + 0.075, abs=2e-3)
 
 
 def test_the_bottom_of_a_stack_is_not_stacked(scenes):
@@ -481,7 +482,7 @@ def test_resting_on_furniture_is_not_stacked(scenes):
 
 
 def test_short_object_under_the_shelf_board_is_under_the_overhang(scenes):
-    assert world.TABLE_TOP_Z + 0.05 < BOARD_UNDERSIDE
+    assert layout.TABLE_TOP_Z + 0.05 < BOARD_UNDERSIDE
     value = scenes["box_under_shelf"].tag("under_overhang")
     assert value.holds and value.value == 1.0 and value.unit == "fraction"
 
@@ -638,7 +639,7 @@ def test_shelf_board_shadows_the_only_light(scenes):
     # Under the board only the ambient reaches the box.
     assert shadowed.value == pytest.approx(0.1) and shadowed.holds
     # Beside the shelf the lamp reaches it 0.3 m off its axis: spot falloff cos^10, incidence cos.
-    top = np.array([SX, SY - 0.3, world.TABLE_TOP_Z + 0.05 + 1e-3])
+    top = np.array([SX, SY - 0.3, layout.TABLE_TOP_Z + 0.05 + 1e-3])
     to_lamp = np.asarray(SHELF_LAMP.position) - top
     cos = to_lamp[2] / np.linalg.norm(to_lamp)
     assert sunlit.value == pytest.approx(0.1 + cos**10 * cos, abs=1e-5)

@@ -11,6 +11,7 @@ import scenes
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
+from scenegen.core import layout
 from scenegen.propose.procedural import FURNITURE_HOME
 from scenegen.schema.condition import ROBOT_POSES
 from scenegen.schema.scene import Camera, FurniturePlacement, Light, Lighting
@@ -65,7 +66,7 @@ def test_world_compiles_with_robot_furniture_and_objects(scene):
         assert model.actuator(name).id >= 0
     for piece in furniture:
         assert piece.name in bodies
-        n_boxes = len(world.FURNITURE[piece.kind].boxes)
+        n_boxes = len(layout.FURNITURE[piece.kind].boxes)
         assert [model.geom(f"{piece.name}_box{i}").bodyid[0] for i in range(n_boxes)] == [
             model.body(piece.name).id
         ] * n_boxes
@@ -126,7 +127,7 @@ def test_initial_state_puts_robot_and_objects_at_their_poses(scene):
         assert data.body(obj.name).xquat == pytest.approx(obj.quat, abs=1e-6)
     # The gripper hangs above the table in front of the base, fingers open.
     ee = data.body(EE_BODY).xpos
-    assert -0.2 < ee[0] < 0.0 and abs(ee[1]) < 1e-6 and ee[2] > world.TABLE_TOP_Z + 0.1
+    assert -0.2 < ee[0] < 0.0 and abs(ee[1]) < 1e-6 and ee[2] > layout.TABLE_TOP_Z + 0.1
     for joint, q in world.GRIPPER_OPEN.items():
         assert data.joint(joint).qpos[0] == pytest.approx(q)
 

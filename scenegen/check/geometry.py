@@ -11,16 +11,24 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import fcl
 import numpy as np
 from pydantic import BaseModel, ConfigDict
-from scipy.spatial import ConvexHull
 
 from scenegen import world
-from scenegen.assets.catalog import Catalog, convex_part_vertices
-from scenegen.schema.scene import CheckResult, ObjectPlacement, SceneProposal
+from scenegen.assets.catalog import Catalog
+from scenegen.core import layout
+from scenegen.core.solids import (
+    Solid,
+    aabb_overlap,
+    box_solid,
+    convex_hull,
+    fcl_convex,
+    object_solid,
+    signed_distance,
+)
+from scenegen.schema.scene import CheckResult, SceneProposal
 
 
 class CheckSettings(BaseModel):
@@ -35,59 +43,6 @@ class CheckSettings(BaseModel):
     reach_max: float = 0.95  # Panda: 0.855 m to the flange + hand; an envelope, not IK
 
 
-@dataclass(frozen=True)
-class Polytope:
-    """A convex piece in the world frame for the separating-axis test: vertices (V, 3), unit face
-    normals (F, 3) and unit edge directions (E, 3)."""
-
-    verts: np.ndarray
-    normals: np.ndarray
-    edges: np.ndarray
-
-    @classmethod
-    def of(cls, verts: np.ndarray, faces: np.ndarray) -> Polytope:
-        tri = verts[faces]
-        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        pairs = np.unique(np.sort(pairs, axis=1), axis=0)
-        edges = verts[pairs[:, 1]] - verts[pairs[:, 0]]
-        return cls(verts, _unit_rows(normals), _unit_rows(edges))
-
-
-def _unit_rows(v: np.ndarray) -> np.ndarray:
-    """Rows of ``v`` scaled to unit length, near-zero rows dropped, near-duplicate directions merged."""
-    norm = np.linalg.norm(v, axis=1)
-    v = v[norm > 1e-9] / norm[norm > 1e-9, None]
-    v = np.where(v[:, [0]] + 1e-9 * v[:, [1]] < 0, -v, v)  # one sign per direction
-    return np.unique(np.round(v, 6), axis=0)
-
-
-def penetration_depth(a: Polytope, b: Polytope) -> float:
-    """Minimum translation (m) that separates two intersecting convex polytopes.
-
-    Separating-axis theorem: for convex polyhedra the smallest overlap over the face normals of both
-    and the cross products of their edge pairs is the penetration depth (0 if they only touch).
-    """
-    cross = np.cross(a.edges[:, None, :], b.edges[None, :, :]).reshape(-1, 3)
-    norm = np.linalg.norm(cross, axis=1)
-    axes = np.concatenate([a.normals, b.normals, cross[norm > 1e-6] / norm[norm > 1e-6, None]])
-    pa, pb = a.verts @ axes.T, b.verts @ axes.T
-    overlap = np.minimum(pa.max(0) - pb.min(0), pb.max(0) - pa.min(0))
-    return max(0.0, float(overlap.min()))
-
-
-@dataclass(frozen=True)
-class Solid:
-    """A named collision body for fcl: one or more convex pieces with their world AABB, and each
-    piece as a :class:`Polytope` where it is one (None for the robot's rounded geoms)."""
-
-    name: str
-    pieces: tuple[fcl.CollisionObject, ...]
-    lo: np.ndarray
-    hi: np.ndarray
-    polytopes: tuple[Polytope | None, ...] = ()
-
-
 def _result(check: str, passed: bool, label: str, value: float, threshold: float, detail: str = ""):
     return CheckResult(
         stage="check",
@@ -100,91 +55,13 @@ def _result(check: str, passed: bool, label: str, value: float, threshold: float
     )
 
 
-@functools.lru_cache(maxsize=256)
-def _convex_geometry(root, asset: str, part: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    return _hull(convex_part_vertices(root, asset)[part] * scale)
-
-
-def _hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Convex hull of points: its vertices (V, 3) and triangles (F, 3) indexing them."""
-    hull = ConvexHull(points)
-    remap = {old: new for new, old in enumerate(hull.vertices)}
-    faces = np.array([[remap[i] for i in simplex] for simplex in hull.simplices])
-    return points[hull.vertices], faces
-
-
-def _fcl_convex(verts: np.ndarray, faces: np.ndarray) -> fcl.Convex:
-    flat = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
-    return fcl.Convex(verts, len(faces), flat)
-
-
-def object_solid(catalog: Catalog, obj: ObjectPlacement) -> Solid:
-    asset = catalog.get(obj.asset)
-    rot = quat_to_matrix(obj.quat)
-    pos = np.asarray(obj.position, float)
-    pieces, corners, polytopes = [], [], []
-    for i in range(len(asset.parts.files)):
-        verts, faces = _convex_geometry(catalog.root, obj.asset, i, obj.scale)
-        pieces.append(fcl.CollisionObject(_fcl_convex(verts, faces), fcl.Transform(rot, pos)))
-        corners.append(verts @ rot.T + pos)
-        polytopes.append(Polytope.of(corners[-1], faces))
-    pts = np.concatenate(corners)
-    return Solid(obj.name, tuple(pieces), pts.min(0), pts.max(0), tuple(polytopes))
-
-
-def box_solid(name: str, boxes: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Solid:
-    pieces, corners, polytopes = [], [], []
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-    for center, rot, half in boxes:
-        pieces.append(fcl.CollisionObject(fcl.Box(*(2 * half)), fcl.Transform(rot, center)))
-        corners.append((signs * half) @ rot.T + center)
-        polytopes.append(Polytope(corners[-1], _unit_rows(rot.T.copy()), _unit_rows(rot.T.copy())))
-    pts = np.concatenate(corners)
-    return Solid(name, tuple(pieces), pts.min(0), pts.max(0), tuple(polytopes))
-
-
-def signed_distance(a: Solid, b: Solid) -> float:
-    """Minimum signed distance (m) between two solids: negative is penetration depth.
-
-    Per pair of convex pieces: fcl's boolean GJK test; a separated pair gets fcl's GJK distance, an
-    intersecting (or touching) pair minus its :func:`penetration_depth` (separating axes; for the
-    robot's rounded geoms, fcl's MPR contact depth, an estimate). fcl's own signed distance (EPA) is
-    not used: on deeply interpenetrating pieces (two bowls 4.5 cm apart) it throws a C++
-    std::logic_error that aborts the whole process (python-fcl 0.7), which Python cannot catch.
-    """
-    best = math.inf
-    test = fcl.CollisionRequest()
-    contact = fcl.CollisionRequest(num_max_contacts=1, enable_contact=True)
-    request = fcl.DistanceRequest()
-    poly_a = a.polytopes or (None,) * len(a.pieces)
-    poly_b = b.polytopes or (None,) * len(b.pieces)
-    for pa, qa in zip(a.pieces, poly_a, strict=True):
-        for pb, qb in zip(b.pieces, poly_b, strict=True):
-            d = -1.0
-            if not fcl.collide(pa, pb, test, fcl.CollisionResult()):
-                d = fcl.distance(pa, pb, request, fcl.DistanceResult())  # -1 when it finds contact
-            if d < 0.0:
-                if qa is not None and qb is not None:
-                    d = -penetration_depth(qa, qb)
-                else:
-                    result = fcl.CollisionResult()
-                    fcl.collide(pa, pb, contact, result)
-                    d = -max((c.penetration_depth for c in result.contacts), default=0.0)
-            best = min(best, d)
-    return best
-
-
-def _aabb_overlap(a: Solid, b: Solid, margin: float) -> bool:
-    return bool(np.all(a.lo - margin <= b.hi) and np.all(b.lo - margin <= a.hi))
-
-
 def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
     """Every object's centre lies over the table, or over the floor strip beside it when the floor is
     its support (value: worst margin to the region's edge, m)."""
-    table = world.support_surfaces(())["table"]
+    table = layout.support_surfaces(())["table"]
     worst, who = math.inf, ""
     for obj in proposal.objects:
-        region = world.FLOOR if obj.support == "floor" else table
+        region = layout.FLOOR if obj.support == "floor" else table
         margin = region.margin(obj.position[:2])
         if margin < worst:
             worst, who = margin, obj.name
@@ -196,7 +73,7 @@ def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSett
 
     value: the worst of (margin of the centre inside the region, m) and (-|bottom - surface|, m).
     """
-    surfaces = world.support_surfaces(proposal.furniture, proposal.objects, catalog)
+    surfaces = layout.support_surfaces(proposal.furniture, proposal.objects, catalog)
     worst, who = math.inf, ""
     for obj in proposal.objects:
         surface = surfaces.get(obj.support) if obj.support != obj.name else None
@@ -214,7 +91,7 @@ def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSett
 def scene_solids(proposal: SceneProposal, catalog: Catalog) -> tuple[list[Solid], list[Solid]]:
     """(objects, furniture) as fcl solids in the world frame."""
     objects = [object_solid(catalog, obj) for obj in proposal.objects]
-    furniture = [box_solid(p.name, world.furniture_boxes(p)) for p in proposal.furniture]
+    furniture = [box_solid(p.name, layout.furniture_boxes(p)) for p in proposal.furniture]
     return objects, furniture
 
 
@@ -226,7 +103,7 @@ def check_collision(
     others = [*objects, *furniture]
     for i, a in enumerate(objects):
         for b in others[i + 1 :]:
-            if not _aabb_overlap(a, b, settings.penetration_tolerance):  # broad phase
+            if not aabb_overlap(a, b, settings.penetration_tolerance):  # broad phase
                 continue
             d = signed_distance(a, b)
             if d < worst:
@@ -255,8 +132,8 @@ def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
         if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH:
             m = model.geom_dataid[g]
             verts = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
-            local, faces = _hull(verts)
-            geom = _fcl_convex(local, faces)
+            local, faces = convex_hull(verts)
+            geom = fcl_convex(local, faces)
         elif model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX:
             local = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
             local = local * model.geom_size[g]
@@ -278,7 +155,7 @@ def check_robot_clearance(
     """Distance (m) from the robot at its initial pose to the nearest object or furniture piece."""
     worst, who = math.inf, ""
     for solid in [*objects, *furniture]:
-        if not _aabb_overlap(solid, robot, settings.robot_clearance):
+        if not aabb_overlap(solid, robot, settings.robot_clearance):
             continue
         d = signed_distance(solid, robot)
         if d < worst:
@@ -315,7 +192,7 @@ def check_reachability(
     pos = np.asarray(obj.position)
     top = pos + [0, 0, catalog.get(obj.asset).resting_poses[obj.resting_pose].height * obj.scale]
     candidates = {"side": pos}
-    boxes = [box for piece in proposal.furniture for box in world.furniture_boxes(piece)]
+    boxes = [box for piece in proposal.furniture for box in layout.furniture_boxes(piece)]
     if not any(_over(top, box) for box in boxes):
         candidates["top"] = top
     best, how = -math.inf, ""
@@ -353,15 +230,3 @@ def run_checks(
         return results, False
     results.append(check_reachability(proposal, catalog, shoulder, settings))
     return results, results[-1].passed
-
-
-def quat_to_matrix(quat: Sequence[float]) -> np.ndarray:
-    """Rotation matrix (3, 3) of a wxyz quaternion."""
-    w, x, y, z = np.asarray(quat, float) / np.linalg.norm(quat)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )

@@ -36,7 +36,7 @@ import math
 import numpy as np
 import torch
 
-from scenegen import world
+from scenegen.core import layout
 from scenegen.diffusion.encoding import (
     AMBIENT_CENTRE,
     AMBIENT_SCALE,
@@ -121,7 +121,7 @@ class SceneCost:
         overlap = torch.relu(radius[:, :, None] + radius[:, None] - dist)
         terms = {"penetration": 0.5 * (pair * overlap).sum((1, 2))}
 
-        half = torch.tensor(world.TABLE_SIZE[:2]) / 2
+        half = torch.tensor(layout.TABLE_SIZE[:2]) / 2
         outside = torch.relu(xy.abs() + radius[..., None] - half).sum(-1)
         terms["table_bounds"] = (present * on_table * outside).sum(1)
 
@@ -130,7 +130,7 @@ class SceneCost:
         terms["robot_clearance"] = (present * torch.relu(ROBOT_KEEP_OUT + radius - to_base)).sum(1)
 
         if self.shoulder is not None:
-            point = torch.cat([xy, (z + world.TABLE_TOP_Z)[..., None]], -1)
+            point = torch.cat([xy, (z + layout.TABLE_TOP_Z)[..., None]], -1)
             r = ((point - self.shoulder).pow(2).sum(-1) + 1e-9).sqrt()
             outside = torch.relu(r - (REACH[1] - REACH_MARGIN)) + torch.relu(REACH[0] + REACH_MARGIN - r)
             not_floor = 1 - support_p[..., SUPPORTS.index("floor")]
@@ -165,7 +165,7 @@ class SceneCost:
         present = torch.sigmoid(SHARPNESS * scene[:, 3 * i])
         home = torch.tensor(FURNITURE_HOME["shelf"])
         centre = home + scene[:, 3 * i + 1 : 3 * i + 3] * FURNITURE_SCALE  # (B, 2)
-        half = torch.tensor(world.FURNITURE["shelf"].surface_half) - torch.tensor([0.0, 0.02])
+        half = torch.tensor(layout.FURNITURE["shelf"].surface_half) - torch.tensor([0.0, 0.02])
         inside = (half - radius[..., None] * torch.tensor([0.0, 1.0]) - (xy - centre[:, None]).abs()) / 0.01
         under = torch.sigmoid(inside).prod(-1)  # (B, K)
         below = 1 - support_p[..., SUPPORTS.index("shelf")]
@@ -177,14 +177,14 @@ class SceneCost:
         base = 3 * len(FURNITURE_KINDS)
         irradiance = scene[:, base] * AMBIENT_SCALE + AMBIENT_CENTRE
         point = torch.cat([(target_p[..., None] * xy).sum(1), (target_p * z).sum(1, keepdim=True)], -1)
-        point = point + torch.tensor([0.0, 0.0, world.TABLE_TOP_Z])
+        point = point + torch.tensor([0.0, 0.0, layout.TABLE_TOP_Z])
         for i in range(self.encoding.light_slots):
             v = scene[:, base + 1 + LIGHT_WIDTH * i : base + 1 + LIGHT_WIDTH * (i + 1)]
             present = torch.sigmoid(SHARPNESS * v[:, 0])
             pos = torch.stack([v[:, 1] * LIGHT_SCALE, v[:, 2] * LIGHT_SCALE, v[:, 3] * LIGHT_SCALE], -1)
-            pos = pos + torch.tensor([0.0, 0.0, world.TABLE_TOP_Z])
+            pos = pos + torch.tensor([0.0, 0.0, layout.TABLE_TOP_Z])
             aim = torch.stack(
-                [v[:, 4] * XY_SCALE, v[:, 5] * XY_SCALE, torch.full_like(v[:, 4], world.TABLE_TOP_Z)], -1
+                [v[:, 4] * XY_SCALE, v[:, 5] * XY_SCALE, torch.full_like(v[:, 4], layout.TABLE_TOP_Z)], -1
             )
             axis = torch.nn.functional.normalize(aim - pos, dim=-1)
             to_light = torch.nn.functional.normalize(pos - point, dim=-1)

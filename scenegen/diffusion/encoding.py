@@ -40,8 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen import world
 from scenegen.assets.catalog import Catalog
+from scenegen.core import layout
 from scenegen.propose.base import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import FURNITURE_HOME, STACK_BASES, footprint_radius
 from scenegen.schema.condition import Condition
@@ -72,7 +72,7 @@ LIGHT_WIDTH = 9
 STACK_SNAP = 0.30
 
 
-def _onto(surface: world.Surface, xy: np.ndarray, half: Sequence[float]) -> np.ndarray:
+def _onto(surface: layout.Surface, xy: np.ndarray, half: Sequence[float]) -> np.ndarray:
     """``xy`` moved (in the surface's yaw frame) into the centred region of half extents ``half``;
     unchanged when already there."""
     local = np.clip(surface.local_xy(xy), -np.asarray(half), np.asarray(half))
@@ -144,7 +144,7 @@ class SceneEncoding:
         for slot, o in enumerate(objects):
             asset = self.catalog.get(o["asset"])
             surface_kind = o["support"] if o["support"] not in names else "stacked"
-            table = world.support_surfaces(())["table"]
+            table = layout.support_surfaces(())["table"]
             pose = snap_to_rest(asset, o["position"], o["quat"], table)[2]
             yaw = _yaw_of(o["quat"], asset.resting_poses[pose].quat)
             token = tokens[slot]
@@ -153,7 +153,7 @@ class SceneEncoding:
             token[self.pose_cols] = _onehot(self.pose_order[asset.name].index(pose), self.max_poses)
             token[self.support_cols] = _onehot(SUPPORTS.index(surface_kind), len(SUPPORTS))
             x, y, z = o["position"]
-            token[self.xyz_cols] = (x / XY_SCALE, y / XY_SCALE, (z - world.TABLE_TOP_Z) / XY_SCALE)
+            token[self.xyz_cols] = (x / XY_SCALE, y / XY_SCALE, (z - layout.TABLE_TOP_Z) / XY_SCALE)
             token[self.yaw_cols] = (math.cos(yaw), math.sin(yaw))
             token[self.target_col] = 1.0 if o["name"] == row["target"] else -1.0
         return tokens, self._scene_token(row)
@@ -178,14 +178,14 @@ class SceneEncoding:
             pos = np.asarray(light["position"], float)
             direction = np.asarray(light["direction"], float)
             # Where the spot's axis meets the table top: the aim point.
-            t = (world.TABLE_TOP_Z - pos[2]) / direction[2] if direction[2] < -1e-6 else 0.0
+            t = (layout.TABLE_TOP_Z - pos[2]) / direction[2] if direction[2] < -1e-6 else 0.0
             aim = pos + t * direction
             colour = light["colour"]
             out += [
                 1.0,
                 pos[0] / LIGHT_SCALE,
                 pos[1] / LIGHT_SCALE,
-                (pos[2] - world.TABLE_TOP_Z) / LIGHT_SCALE,
+                (pos[2] - layout.TABLE_TOP_Z) / LIGHT_SCALE,
                 aim[0] / XY_SCALE,
                 aim[1] / XY_SCALE,
                 (colour[0] - colour[2]) / TINT_SCALE,  # colour = clip([1 + tint, 1, 1 - tint], 0, 1)
@@ -217,7 +217,7 @@ class SceneEncoding:
         proposal's condition names that category (for samples of the null condition)."""
         tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
         furniture = self._furniture(scene)
-        surfaces = world.support_surfaces(furniture)
+        surfaces = layout.support_surfaces(furniture)
         count = int(np.argmax(scene[self.count_cols])) + 1
         count = min(count, max(1, int(np.sum(tokens[:, 0] > 0))))  # never an empty slot's -1 token
         present = sorted(np.argsort(-tokens[:, 0], kind="stable")[:count].tolist())
@@ -234,7 +234,7 @@ class SceneEncoding:
             asset = self.catalog.get(asset_of[s])
             columns = self.pose_order[asset.name]
             pose = columns[int(np.argmax(token[self.pose_cols][: len(columns)]))]
-            xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, world.TABLE_TOP_Z]
+            xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, layout.TABLE_TOP_Z]
             xy = xyz[:2]
             yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])
             support = support_of[s]
@@ -293,13 +293,13 @@ class SceneEncoding:
             asset_of[target] = self.assets[max(allowed, key=lambda i: scores[i])]
         return target, asset_of
 
-    def _base_under(self, xy: np.ndarray, placed) -> tuple[ObjectPlacement, world.Surface] | None:
+    def _base_under(self, xy: np.ndarray, placed) -> tuple[ObjectPlacement, layout.Surface] | None:
         """The base for an object decoded as stacked at ``xy``, among the placed objects that may
         carry another (``STACK_BASES``, not on the floor, as the procedural sampler stacks): of those
         whose top holds ``xy`` (2 cm tolerance), the one whose top centre is nearest; else the one
         whose top is nearest, if within ``STACK_SNAP``; else None. Returns the base and its top."""
         bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
-        tops = [world.object_top_surface(self.catalog, o) for o in bases]
+        tops = [layout.object_top_surface(self.catalog, o) for o in bases]
         holding = [
             (np.hypot(*(np.asarray(t.center) - xy)), k) for k, t in enumerate(tops) if t.margin(xy) >= -0.02
         ]
@@ -329,8 +329,8 @@ class SceneEncoding:
             v = scene[base + 1 + LIGHT_WIDTH * i : base + 1 + LIGHT_WIDTH * (i + 1)]
             if v[0] <= 0:
                 continue
-            pos = np.array([v[1] * LIGHT_SCALE, v[2] * LIGHT_SCALE, world.TABLE_TOP_Z + v[3] * LIGHT_SCALE])
-            aim = np.array([v[4] * XY_SCALE, v[5] * XY_SCALE, world.TABLE_TOP_Z])
+            pos = np.array([v[1] * LIGHT_SCALE, v[2] * LIGHT_SCALE, layout.TABLE_TOP_Z + v[3] * LIGHT_SCALE])
+            aim = np.array([v[4] * XY_SCALE, v[5] * XY_SCALE, layout.TABLE_TOP_Z])
             direction = aim - pos
             norm = np.linalg.norm(direction)
             direction = direction / norm if norm > 1e-9 else np.array([0.0, 0.0, -1.0])

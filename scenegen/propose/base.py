@@ -14,9 +14,9 @@ from typing import Protocol
 import numpy as np
 
 from scenegen.assets.catalog import Asset
+from scenegen.core.layout import Surface
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import ObjectPlacement, SceneProposal
-from scenegen.world import Surface
 
 
 class Proposer(Protocol):

@@ -17,8 +17,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from scenegen import world
 from scenegen.assets.catalog import Asset, Catalog
+from scenegen.core import layout
 from scenegen.propose.base import placed_at_rest, proposal_rng, register_proposer, yaw_quat
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
@@ -141,10 +141,10 @@ def sample_lighting(rng: np.random.Generator, s: LightingSettings) -> Lighting:
             [
                 r * math.cos(elevation) * math.cos(azimuth),
                 r * math.cos(elevation) * math.sin(azimuth),
-                world.TABLE_TOP_Z + r * math.sin(elevation),
+                layout.TABLE_TOP_Z + r * math.sin(elevation),
             ]
         )
-        aim = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), world.TABLE_TOP_Z])
+        aim = np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), layout.TABLE_TOP_Z])
         direction = (aim - pos) / np.linalg.norm(aim - pos)
         tint = rng.uniform(-s.colour_jitter, s.colour_jitter)  # > 0 warm, < 0 cool
         colour = np.clip([1.0 + tint, 1.0, 1.0 - tint], 0.0, 1.0)
@@ -179,7 +179,7 @@ def _r(v) -> tuple[float, ...]:
 
 def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
     """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
-    from scenegen.check.geometry import quat_to_matrix
+    from scenegen.core.rotations import quat_to_matrix
 
     ext = np.asarray(asset.extents) / 2
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
@@ -223,12 +223,12 @@ class ProceduralProposer:
                 position = (*_r(np.add(FURNITURE_HOME[kind], jitter)), 0.0)
                 furniture.append(FurniturePlacement(name=kind, kind=kind, position=position))
         furniture = tuple(furniture)
-        surfaces = world.support_surfaces(furniture)
+        surfaces = layout.support_surfaces(furniture)
         keep_out = [
             box
             for piece in furniture
-            for box in world.furniture_boxes(piece)
-            if box[0][2] - box[2][2] < world.TABLE_TOP_Z + 1e-3
+            for box in layout.furniture_boxes(piece)
+            if box[0][2] - box[2][2] < layout.TABLE_TOP_Z + 1e-3
         ]
         n = int(rng.integers(s.n_objects[0], s.n_objects[1] + 1))
         target_slot = int(rng.integers(n))
@@ -250,12 +250,12 @@ class ProceduralProposer:
                 base = bases[int(rng.integers(len(bases)))] if bases else None
                 support = base.name if base else "table"
                 if base is not None:
-                    surfaces[base.name] = world.object_top_surface(self.catalog, base)
+                    surfaces[base.name] = layout.object_top_surface(self.catalog, base)
             under_shelf = support == "under_shelf"
             if under_shelf:
                 # On the table, within the shelf's footprint: the table region under its board.
                 shelf = surfaces["shelf"]
-                surface = world.Surface("table", world.TABLE_TOP_Z, shelf.center, shelf.half, shelf.yaw)
+                surface = layout.Surface("table", layout.TABLE_TOP_Z, shelf.center, shelf.half, shelf.yaw)
                 support = "table"
             else:
                 surface = surfaces[support]

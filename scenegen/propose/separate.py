@@ -25,16 +25,9 @@ import math
 import numpy as np
 
 from scenegen.assets.catalog import Catalog
-from scenegen.check.geometry import (
-    Polytope,
-    Solid,
-    _aabb_overlap,
-    box_solid,
-    object_solid,
-    signed_distance,
-)
+from scenegen.core.layout import furniture_boxes
+from scenegen.core.solids import Polytope, Solid, aabb_overlap, box_solid, object_solid, signed_distance
 from scenegen.schema.scene import ObjectPlacement, SceneProposal
-from scenegen.world import furniture_boxes
 
 RESTING = 2e-4  # m: pieces overlapping less than this (vertically, or at all) are in resting contact
 
@@ -87,7 +80,7 @@ def _pair_push(a: Solid, b: Solid, clearance: float, a_at, b_at) -> np.ndarray |
     """The push (m, (2,)) that takes ``a`` out of ``b``, or None when they do not overlap: the
     pieces' own :func:`horizontal_push`, else the depth plus ``clearance`` along the line from
     ``b_at`` to ``a_at``."""
-    if not _aabb_overlap(a, b, clearance):
+    if not aabb_overlap(a, b, clearance):
         return None
     d = signed_distance(a, b)
     if d >= -RESTING:

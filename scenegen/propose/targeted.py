@@ -28,9 +28,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from scenegen import world
 from scenegen.assets.catalog import Asset, Catalog
-from scenegen.check.geometry import quat_to_matrix
+from scenegen.core import layout
+from scenegen.core.rotations import quat_to_matrix
 from scenegen.propose.base import non_upright, placed_at_rest, quat_mul, register_proposer, yaw_quat
 from scenegen.propose.procedural import (
     FURNITURE_HOME,
@@ -143,7 +143,7 @@ class TargetedProposer:
     # ------------------------------------------------------------------------------- the rules
 
     def _on_floor(self, scene: _Scene, rng: np.random.Generator) -> None:
-        self._place(scene, scene.target, world.FLOOR, rng)
+        self._place(scene, scene.target, layout.FLOOR, rng)
 
     def _under_overhang(self, scene: _Scene, rng: np.random.Generator) -> None:
         shelf = next((f for f in scene.furniture if f.kind == "shelf"), None)
@@ -151,12 +151,12 @@ class TargetedProposer:
             shelf = FurniturePlacement(name="shelf", kind="shelf", position=(*FURNITURE_HOME["shelf"], 0.0))
             scene.furniture.append(shelf)
         # The half of the region under the board nearer the robot (the far half is mostly out of reach).
-        board = world.support_surfaces([shelf])["shelf"]
-        wall = world.FURNITURE["shelf"].boxes[0].half[1] * 2
+        board = layout.support_surfaces([shelf])["shelf"]
+        wall = layout.FURNITURE["shelf"].boxes[0].half[1] * 2
         c, s = math.cos(board.yaw), math.sin(board.yaw)
         back = np.asarray(board.center) - board.half[0] / 2 * np.array([c, s])
-        under = world.Surface(
-            "table", world.TABLE_TOP_Z, tuple(back), (board.half[0] / 2, board.half[1] - wall), board.yaw
+        under = layout.Surface(
+            "table", layout.TABLE_TOP_Z, tuple(back), (board.half[0] / 2, board.half[1] - wall), board.yaw
         )
         self._place(scene, scene.target, under, rng, margin="radius")
 
@@ -168,8 +168,8 @@ class TargetedProposer:
         pose = max(range(len(asset.resting_poses)), key=lambda i: asset.resting_poses[i].probability)
         pose = pose if asset.category == "box" else upright[0]
         base = self._add(scene, asset, pose, self._table(), rng, margin="radius")
-        top = world.object_top_surface(self.catalog, base)
-        inner = world.Surface(base.name, top.z, top.center, tuple(h / 2 for h in top.half), top.yaw)
+        top = layout.object_top_surface(self.catalog, base)
+        inner = layout.Surface(base.name, top.z, top.center, tuple(h / 2 for h in top.half), top.yaw)
         self._place(scene, scene.target, inner, rng, support=base.name)
 
     def _near_edge(self, scene: _Scene, rng: np.random.Generator) -> None:
@@ -180,7 +180,7 @@ class TargetedProposer:
         yaw = rng.uniform(-math.pi, math.pi)
         quat = quat_mul(yaw_quat(yaw), np.asarray(asset.resting_poses[target.resting_pose].quat))
         reach = _extent_along(asset, quat, normal)  # centre to footprint boundary along the normal
-        half = np.array(world.TABLE_SIZE[:2]) / 2
+        half = np.array(layout.TABLE_SIZE[:2]) / 2
         depth = float(np.abs(normal) @ half) - reach - rng.uniform(*self.settings.edge_distance)
         along = np.abs([normal[1], normal[0]])
         xy = normal * depth + along * rng.uniform(*self.settings.edge_along)
@@ -242,19 +242,19 @@ class TargetedProposer:
 
     # ----------------------------------------------------------------------------- placement
 
-    def _table(self) -> world.Surface:
-        return world.support_surfaces(())["table"]
+    def _table(self) -> layout.Surface:
+        return layout.support_surfaces(())["table"]
 
-    def _surface_of(self, scene: _Scene, obj: ObjectPlacement) -> world.Surface:
+    def _surface_of(self, scene: _Scene, obj: ObjectPlacement) -> layout.Surface:
         if obj.support in scene.objects:
-            return world.object_top_surface(self.catalog, scene.objects[obj.support])
-        return world.support_surfaces(scene.furniture)[obj.support]
+            return layout.object_top_surface(self.catalog, scene.objects[obj.support])
+        return layout.support_surfaces(scene.furniture)[obj.support]
 
     def _place(
         self,
         scene: _Scene,
         name: str,
-        surface: world.Surface,
+        surface: layout.Surface,
         rng: np.random.Generator,
         margin: str = "fixed",
         support: str | None = None,
@@ -277,7 +277,7 @@ class TargetedProposer:
         scene: _Scene,
         asset: Asset,
         pose: int,
-        surface: world.Surface,
+        surface: layout.Surface,
         rng: np.random.Generator,
         *,
         name: str,
@@ -336,7 +336,7 @@ class TargetedProposer:
                     break
         changed = True
         while changed:
-            known = {*scene.objects, *world.support_surfaces(scene.furniture)}
+            known = {*scene.objects, *layout.support_surfaces(scene.furniture)}
             gone = [
                 n
                 for n, o in scene.objects.items()

@@ -1,8 +1,8 @@
 """The values that pass between stages: proposals, check results, settled scene records.
 
 Frames and units: positions are metres in the MuJoCo world frame (z up; the table top is at
-``world.TABLE_TOP_Z``, the robot base behind the table at negative x, facing +x); orientations are
-wxyz quaternions as MuJoCo uses them; angles are radians.
+``core.layout.TABLE_TOP_Z``, the robot base behind the table at negative x, facing +x);
+orientations are wxyz quaternions as MuJoCo uses them; angles are radians.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class ObjectPlacement(_Value):
 
 
 class FurniturePlacement(_Value):
-    """A fixed piece of furniture on the table: ``kind`` from ``world.FURNITURE``, pose by yaw."""
+    """A fixed piece of furniture on the table: ``kind`` from ``core.layout.FURNITURE``, pose by yaw."""
 
     name: str
     kind: Literal["shelf", "bin"]

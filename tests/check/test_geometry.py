@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scenes import place, proposal
 
-from scenegen import world
 from scenegen.assets.catalog import load_catalog
 from scenegen.check import geometry
 from scenegen.check.geometry import CheckSettings
+from scenegen.core import layout, solids
 from scenegen.propose.procedural import FURNITURE_HOME
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import FurniturePlacement
@@ -46,10 +46,10 @@ def reachability(catalog, p):
 
 def test_snapped_object_rests_on_the_table(catalog):
     box = place(catalog, "box", "small_box", 0.0, 0.0)
-    assert box.position[2] == pytest.approx(world.TABLE_TOP_Z + 0.025)
+    assert box.position[2] == pytest.approx(layout.TABLE_TOP_Z + 0.025)
     # The lowest vertex of its convex part touches the table top.
-    solid = geometry.object_solid(catalog, box)
-    assert solid.lo[2] == pytest.approx(world.TABLE_TOP_Z, abs=1e-6)
+    solid = solids.object_solid(catalog, box)
+    assert solid.lo[2] == pytest.approx(layout.TABLE_TOP_Z, abs=1e-6)
     result = geometry.check_support(proposal([box]), catalog, SETTINGS)
     assert result.passed and result.value >= 0.0
 
@@ -196,9 +196,9 @@ def test_far_corner_is_unreachable(catalog):
 
 def test_robot_shoulder_is_where_the_panda_mounts(catalog):
     _, shoulder = geometry.robot_geometry(tuple(Condition().robot_pose))
-    assert shoulder[0] < -world.TABLE_SIZE[0] / 2  # behind the table
+    assert shoulder[0] < -layout.TABLE_SIZE[0] / 2  # behind the table
     assert shoulder[1] == pytest.approx(0.0, abs=1e-6)
-    assert world.TABLE_TOP_Z < shoulder[2] < world.TABLE_TOP_Z + 0.6
+    assert layout.TABLE_TOP_Z < shoulder[2] < layout.TABLE_TOP_Z + 0.6
 
 
 def test_object_in_front_of_the_robot_is_reachable_from_the_top(catalog):
@@ -283,15 +283,15 @@ def test_separating_axis_depth_matches_fcl_on_shallow_overlaps(catalog, seed: in
     import fcl
 
     rng = np.random.default_rng(seed)
-    mug = geometry.object_solid(catalog, place(catalog, "mug", "mug", 0.0, 0.0, pose=2))
+    mug = solids.object_solid(catalog, place(catalog, "mug", "mug", 0.0, 0.0, pose=2))
     can = place(catalog, "can", "soup_can", 0.0, 0.0, pose=1, yaw=rng.uniform(-math.pi, math.pi))
     direction = rng.normal(size=2)
     direction /= np.linalg.norm(direction)
     for gap in (-0.004, -0.002, -0.0005):  # metres of overlap between footprint circles
         reach = 0.0535 + 0.038 + gap  # mug body radius + can radius, then overlapped
         moved = can.model_copy(update={"position": (*(direction * reach), can.position[2])})
-        solid = geometry.object_solid(catalog, moved)
-        ours = geometry.signed_distance(mug, solid)
+        solid = solids.object_solid(catalog, moved)
+        ours = solids.signed_distance(mug, solid)
         request = fcl.DistanceRequest(enable_signed_distance=True)
         theirs = min(
             fcl.distance(pa, pb, request, fcl.DistanceResult()) for pa in mug.pieces for pb in solid.pieces
@@ -302,6 +302,6 @@ def test_separating_axis_depth_matches_fcl_on_shallow_overlaps(catalog, seed: in
 def test_penetration_depth_of_two_cubes():
     cube = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.05
     axes = np.eye(3)
-    a = geometry.Polytope(cube, axes, axes)
-    b = geometry.Polytope(cube + [0.07, 0.01, 0.0], axes, axes)
-    assert geometry.penetration_depth(a, b) == pytest.approx(0.03)
+    a = solids.Polytope(cube, axes, axes)
+    b = solids.Polytope(cube + [0.07, 0.01, 0.0], axes, axes)
+    assert solids.penetration_depth(a, b) == pytest.approx(0.03)

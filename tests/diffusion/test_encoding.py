@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenegen import world
 from scenegen.assets.catalog import load_catalog
+from scenegen.core import layout
 from scenegen.diffusion.encoding import SLOTS, STACK_SNAP, XY_SCALE, SceneEncoding
 from scenegen.propose.procedural import DEFAULT_CAMERAS, footprint_radius
 from scenegen.realism import load_rows
@@ -76,7 +76,7 @@ def test_noisy_tokens_decode_onto_resting_poses_and_report_the_projection(encodi
         noisy = tokens + rng.normal(0, 0.05, tokens.shape)
         noisy[:, 0] = tokens[:, 0]  # same slots present
         decoded = decode(encoding, noisy, scene + rng.normal(0, 0.05, scene.shape), row)
-        surfaces = world.support_surfaces(decoded.proposal.furniture)
+        surfaces = layout.support_surfaces(decoded.proposal.furniture)
         for o, distance in zip(decoded.proposal.objects, decoded.projection, strict=True):
             pose = catalog.get(o.asset).resting_poses[o.resting_pose]
             if o.support in surfaces:  # stacked objects sit on their base's top instead
@@ -149,7 +149,7 @@ def test_an_object_decoded_as_stacked_moves_onto_the_nearest_base(encoding, rows
     tokens, scene = encoding.encode_row(row)
     objects = decode(encoding, tokens, scene, row).proposal.objects
     base = next(o for o in objects if o.name == objects[slot].support)
-    top = world.object_top_surface(catalog, base)
+    top = layout.object_top_surface(catalog, base)
     away = np.asarray(objects[slot].position[:2]) - top.center
     away = away / np.hypot(*away) if np.hypot(*away) > 1e-9 else np.array([1.0, 0.0])
 
@@ -174,7 +174,7 @@ def test_an_object_inside_the_bins_walls_goes_into_the_bin_with_its_footprint_in
     wall moves in until its footprint circle clears the walls (the procedural sampler's rule)."""
     row = next(r for r in rows if "bin" in {f["kind"] for f in r["furniture"]})
     tokens, scene = encoding.encode_row(row)
-    bin_ = world.support_surfaces(decode(encoding, tokens, scene, row).proposal.furniture)["bin"]
+    bin_ = layout.support_surfaces(decode(encoding, tokens, scene, row).proposal.furniture)["bin"]
     slot, centre, support = 0, np.asarray(bin_.center), encoding.support_cols.start
     for xy, kind in [(centre + [0.0, bin_.half[1] - 0.01], "table"), (centre - [bin_.half[0], 0.0], "bin")]:
         moved = tokens.copy()

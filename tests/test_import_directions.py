@@ -1,0 +1,123 @@
+"""Import directions (docs/architecture.md): read from the source with an AST walk, function-local
+imports included, so the rules hold whether or not a code path runs.
+
+- no import loops between scenegen modules;
+- the core (scenegen/core/) imports only numpy-level libraries and scenegen's schema, asset catalog
+  and paths: never MuJoCo, a renderer, torch or a stage;
+- the MuJoCo back end (scenegen/world.py) imports the core, the schema and the catalog, never a stage;
+- the proposers and the generator's encoding and cost never import MuJoCo, directly or through the
+  modules they import at load time.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "scenegen"
+NO_MUJOCO = (
+    "scenegen/core/",
+    "scenegen/propose/",
+    "scenegen/diffusion/encoding.py",
+    "scenegen/diffusion/cost.py",
+)
+CORE_MAY_IMPORT = ("scenegen.core", "scenegen.schema", "scenegen.assets.catalog", "scenegen.paths")
+CORE_LIBRARIES = {"numpy", "scipy", "fcl", "math", "functools", "collections", "dataclasses", "__future__"}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(path: Path) -> set[str]:
+    """Every module name ``path`` imports, at any depth of its code (relative imports resolved)."""
+    tree = ast.parse(path.read_text())
+    package = module_name(path).rsplit(".", 1)[0] if path.name != "__init__.py" else module_name(path)
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + [base]
+                ).strip(".")
+            found.add(base)
+            found |= {f"{base}.{alias.name}" for alias in node.names}  # `from scenegen import world`
+    return found
+
+
+def graph() -> dict[str, set[str]]:
+    modules = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+    return {name: {m for m in imports(path) if m in modules and m != name} for name, path in modules.items()}
+
+
+def test_no_import_loops():
+    edges = graph()
+    index, low, stack, on_stack, loops, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):  # Tarjan's strongly connected components
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                loops.append(sorted(component))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    assert not loops, f"import loops: {loops}"
+
+
+def test_the_core_imports_no_stage_and_no_simulator():
+    for path in sorted((PACKAGE / "core").rglob("*.py")):
+        for name in imports(path):
+            top = name.split(".")[0]
+            if top == "scenegen":
+                assert name == "scenegen" or name.startswith(CORE_MAY_IMPORT), f"{path.name} imports {name}"
+            else:
+                assert top in CORE_LIBRARIES, f"{path.name} imports {name}: the core stays numpy-level"
+
+
+def test_the_mujoco_back_end_imports_no_stage():
+    allowed = ("scenegen.core", "scenegen.schema", "scenegen.assets.catalog", "scenegen.paths")
+    for name in imports(PACKAGE / "world.py"):
+        if name.startswith("scenegen.") and name not in ("scenegen.world",):
+            assert name.startswith(allowed), f"world.py imports {name}"
+
+
+def test_no_mujoco_import_in_the_core_the_proposers_or_the_encoding_and_cost():
+    for path in sorted(PACKAGE.rglob("*.py")):
+        relative = str(path.relative_to(PACKAGE.parent))
+        if relative.startswith(NO_MUJOCO):
+            assert not {n for n in imports(path) if n.split(".")[0] == "mujoco"}, relative
+
+
+def test_importing_the_proposers_and_the_generator_loads_no_mujoco():
+    code = (
+        "import sys; import scenegen.propose.procedural, scenegen.propose.targeted, "
+        "scenegen.propose.diffusion, scenegen.diffusion.encoding, scenegen.diffusion.cost, "
+        "scenegen.core.solids; "
+        "assert 'mujoco' not in sys.modules, sorted(m for m in sys.modules if m.startswith('scenegen'))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
