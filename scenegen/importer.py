@@ -343,8 +343,8 @@ def _placements(
 ) -> tuple[list[ObjectPlacement], list[FurniturePlacement]]:
     """Objects with their support and nearest resting pose, and furniture, as the pipeline names them."""
     from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.placement import snap_to_rest
     from scenegen.core.rotations import quat_to_matrix
-    from scenegen.propose.base import snap_to_rest
 
     furniture = [
         FurniturePlacement(name=name, kind=f.kind, position=(f.position[0], f.position[1], 0.0), yaw=f.yaw)

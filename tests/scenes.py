@@ -14,7 +14,7 @@ import yaml
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.base import quat_mul, snap_to_rest, yaw_quat
+from scenegen.core.placement import quat_mul, snap_to_rest, yaw_quat
 from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement, SceneProposal

@@ -5,6 +5,7 @@ imports included, so the rules hold whether or not a code path runs.
 - the core (scenegen/core/) imports only numpy-level libraries and scenegen's schema, asset catalog
   and paths: never MuJoCo, a renderer, torch or a stage;
 - the MuJoCo back end (scenegen/world.py) imports the core, the schema and the catalog, never a stage;
+- the generator's encoding and cost import only the core, the schema and the catalog;
 - the proposers and the generator's encoding and cost never import MuJoCo, directly or through the
   modules they import at load time.
 """
@@ -103,6 +104,14 @@ def test_the_mujoco_back_end_imports_no_stage():
     for name in imports(PACKAGE / "world.py"):
         if name.startswith("scenegen.") and name not in ("scenegen.world",):
             assert name.startswith(allowed), f"world.py imports {name}"
+
+
+def test_the_generators_encoding_and_cost_import_only_the_core_the_schema_and_the_catalog():
+    allowed = CORE_MAY_IMPORT + ("scenegen.diffusion.encoding",)
+    for name in ("encoding.py", "cost.py"):
+        for module in imports(PACKAGE / "diffusion" / name):
+            if module.startswith("scenegen."):
+                assert module.startswith(allowed), f"diffusion/{name} imports {module}"
 
 
 def test_no_mujoco_import_in_the_core_the_proposers_or_the_encoding_and_cost():

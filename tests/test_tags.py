@@ -24,8 +24,9 @@ from scenes import place, proposal
 from scenegen import tags, world
 from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.core import layout
+from scenegen.core.layout import FURNITURE_HOME
 from scenegen.core.rotations import quat_to_matrix
-from scenegen.propose.procedural import DEFAULT_CAMERAS, FURNITURE_HOME
+from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.render import SceneRenderer, segmentation_ids
 from scenegen.schema.condition import RARE_TAGS, Condition
 from scenegen.schema.scene import (

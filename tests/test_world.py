@@ -12,7 +12,7 @@ import scenes
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
 from scenegen.core import layout
-from scenegen.propose.procedural import FURNITURE_HOME
+from scenegen.core.layout import FURNITURE_HOME
 from scenegen.schema.condition import ROBOT_POSES
 from scenegen.schema.scene import Camera, FurniturePlacement, Light, Lighting
 

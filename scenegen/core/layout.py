@@ -17,12 +17,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.assets.catalog import Catalog, convex_part_vertices
+from scenegen.assets.catalog import Asset, Catalog, convex_part_vertices
 from scenegen.core.rotations import quat_to_matrix, yaw_matrix
 from scenegen.schema.scene import FurniturePlacement, ObjectPlacement
 
 TABLE_SIZE = (0.8, 1.0, 0.05)  # full x, y extents and thickness (m)
 TABLE_TOP_Z = 0.8
+# Assets with a flat top that others may be stacked on (``stack`` support).
+STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})
+# Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
+FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
 
 
 @dataclass(frozen=True)
@@ -157,3 +161,20 @@ def furniture_boxes(piece: FurniturePlacement) -> list[tuple[np.ndarray, np.ndar
     return [
         (origin + rot @ np.array(box.center), rot, np.array(box.half)) for box in FURNITURE[piece.kind].boxes
     ]
+
+
+def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
+    """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
+    ext = np.asarray(asset.extents) / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
+    return (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, :2]
+
+
+def footprint_radius(asset: Asset, pose: int) -> float:
+    """Radius (m) of a circle that holds the asset's footprint in resting pose ``pose``, any yaw."""
+    return float(np.linalg.norm(_footprint_corners(asset, pose), axis=1).max())
+
+
+def footprint_half_extents(asset: Asset, pose: int) -> np.ndarray:
+    """Half extents (m, x and y) of the asset's footprint box in resting pose ``pose`` at yaw 0."""
+    return np.abs(_footprint_corners(asset, pose)).max(0)

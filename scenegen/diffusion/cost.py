@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from scenegen.core import layout
+from scenegen.core.layout import FURNITURE_HOME, footprint_half_extents
 from scenegen.diffusion.encoding import (
     AMBIENT_CENTRE,
     AMBIENT_SCALE,
@@ -51,7 +52,6 @@ from scenegen.diffusion.encoding import (
     XY_SCALE,
     SceneEncoding,
 )
-from scenegen.propose.procedural import FURNITURE_HOME, footprint_half_extents
 
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column

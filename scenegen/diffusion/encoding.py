@@ -42,8 +42,8 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.base import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
-from scenegen.propose.procedural import FURNITURE_HOME, STACK_BASES, footprint_radius
+from scenegen.core.layout import FURNITURE_HOME, STACK_BASES, footprint_radius
+from scenegen.core.placement import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,

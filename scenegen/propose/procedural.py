@@ -19,7 +19,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from scenegen.assets.catalog import Asset, Catalog
 from scenegen.core import layout
-from scenegen.propose.base import placed_at_rest, proposal_rng, register_proposer, yaw_quat
+from scenegen.core.layout import FURNITURE_HOME, STACK_BASES, footprint_radius
+from scenegen.core.placement import placed_at_rest, yaw_quat
+from scenegen.propose.base import proposal_rng, register_proposer
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,
@@ -30,10 +32,6 @@ from scenegen.schema.scene import (
     SceneProposal,
 )
 
-# Assets with a flat top that others may be stacked on (``stack`` support).
-STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})
-# Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
-FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
 DEFAULT_CAMERAS = (
     # The main camera (first): tags such as `occluded` are measured from it.
     Camera(name="front", position=(1.25, 0.0, 1.45), lookat=(0.0, 0.0, 0.85)),
@@ -177,25 +175,6 @@ def _r(v) -> tuple[float, ...]:
     return tuple(round(float(x), 6) for x in v)
 
 
-def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
-    """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
-    from scenegen.core.rotations import quat_to_matrix
-
-    ext = np.asarray(asset.extents) / 2
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
-    return (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, :2]
-
-
-def footprint_radius(asset: Asset, pose: int) -> float:
-    """Radius (m) of a circle that holds the asset's footprint in resting pose ``pose``, any yaw."""
-    return float(np.linalg.norm(_footprint_corners(asset, pose), axis=1).max())
-
-
-def footprint_half_extents(asset: Asset, pose: int) -> np.ndarray:
-    """Half extents (m, x and y) of the asset's footprint box in resting pose ``pose`` at yaw 0."""
-    return np.abs(_footprint_corners(asset, pose)).max(0)
-
-
 @register_proposer("procedural")
 class ProceduralProposer:
     """Domain randomization behind the proposer interface."""
@@ -331,6 +310,6 @@ def _inside(xy: np.ndarray, box: tuple[np.ndarray, np.ndarray, np.ndarray], radi
 
 
 def _quat_mul_yaw(yaw: float, quat: Sequence[float]) -> np.ndarray:
-    from scenegen.propose.base import quat_mul
+    from scenegen.core.placement import quat_mul
 
     return quat_mul(yaw_quat(yaw), np.asarray(quat, float))

@@ -30,14 +30,14 @@ from pydantic import Field, field_validator
 
 from scenegen.assets.catalog import Asset, Catalog
 from scenegen.core import layout
+from scenegen.core.layout import FURNITURE_HOME, footprint_radius
+from scenegen.core.placement import placed_at_rest, quat_mul, yaw_quat
 from scenegen.core.rotations import quat_to_matrix
-from scenegen.propose.base import non_upright, placed_at_rest, quat_mul, register_proposer, yaw_quat
+from scenegen.propose.base import non_upright, register_proposer
 from scenegen.propose.procedural import (
-    FURNITURE_HOME,
     LightingSettings,
     ProceduralProposer,
     ProceduralSettings,
-    footprint_radius,
     sample_lighting,
 )
 from scenegen.schema.condition import Condition

@@ -12,7 +12,7 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.check import geometry
 from scenegen.check.geometry import CheckSettings
 from scenegen.core import layout, solids
-from scenegen.propose.procedural import FURNITURE_HOME
+from scenegen.core.layout import FURNITURE_HOME
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import FurniturePlacement
 

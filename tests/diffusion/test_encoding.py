@@ -10,8 +10,9 @@ import pytest
 
 from scenegen.assets.catalog import load_catalog
 from scenegen.core import layout
+from scenegen.core.layout import footprint_radius
 from scenegen.diffusion.encoding import SLOTS, STACK_SNAP, XY_SCALE, SceneEncoding
-from scenegen.propose.procedural import DEFAULT_CAMERAS, footprint_radius
+from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.realism import load_rows
 from scenegen.schema.condition import Condition
 
