@@ -12,10 +12,8 @@ A cell is sparse when it holds fewer than ``sparse`` scenes (default 20) or less
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import sys
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -331,6 +329,39 @@ def _text(image, text, org, scale=0.5, colour=_INK, thickness=1, anchor="left") 
     cv2.putText(image, text, (int(x), int(y)), _FONT, scale, colour, thickness, cv2.LINE_AA)
 
 
+def _draw_labels(image: np.ndarray, table, tasks, threshold: int, log: bool, frame: tuple) -> None:
+    """Axis titles, the chart's title and sparse note, and the legend of tasks, drawn in place."""
+    import cv2
+
+    left, top, plot_w, plot_h, height = frame
+    _text(image, "rare-case tag", (left + plot_w // 2, height - 22), 0.55, anchor="centre")
+    label = "scenes (log scale)" if log else "scenes"
+    (lw, lh), _ = cv2.getTextSize(label, _FONT, 0.55, 1)
+    strip = np.full((lh + 12, lw + 8, 3), 255, np.uint8)
+    _text(strip, label, (4, lh + 4), 0.55)
+    strip = cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
+    sy = top + (plot_h - strip.shape[0]) // 2
+    image[sy : sy + strip.shape[0], 18 : 18 + strip.shape[1]] = strip
+
+    source = table.source if len(table.source) <= 70 else "..." + table.source[-67:]
+    _text(image, f"Coverage of {source}: {table.total} scenes per task x tag", (left, 34), 0.65, thickness=2)
+    _text(
+        image,
+        f"* sparse (red count, below the dashed line at {threshold}): fewer than {table.sparse} scenes "
+        f"or under {table.min_share:.0%} of all",
+        (left, 62),
+        0.48,
+        _SPARSE_INK,
+    )
+    lx = left
+    for i, task in enumerate(tasks):
+        colour = _PALETTE[i % len(_PALETTE)]
+        cv2.rectangle(image, (lx, 78), (lx + 16, 94), colour, -1)
+        entry = f"{task} ({table.scenes.get(task, 0)})"
+        _text(image, entry, (lx + 22, 92), 0.5)
+        lx += 22 + cv2.getTextSize(entry, _FONT, 0.5, 1)[0][0] + 24
+
+
 def _draw_chart(table: CoverageTable, log: bool | None = None) -> np.ndarray:
     """The chart as a BGR image (H, W, 3) uint8; its width grows with the number of bars.
 
@@ -408,92 +439,14 @@ def _draw_chart(table: CoverageTable, log: bool | None = None) -> np.ndarray:
         centre = gx + len(tasks) * bar_w // 2
         _text(image, tag, (centre, top + plot_h + 24), 0.5, anchor="centre")
 
-    _text(image, "rare-case tag", (left + plot_w // 2, height - 22), 0.55, anchor="centre")
-    label = "scenes (log scale)" if log else "scenes"
-    (lw, lh), _ = cv2.getTextSize(label, _FONT, 0.55, 1)
-    strip = np.full((lh + 12, lw + 8, 3), 255, np.uint8)
-    _text(strip, label, (4, lh + 4), 0.55)
-    strip = cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
-    sy = top + (plot_h - strip.shape[0]) // 2
-    image[sy : sy + strip.shape[0], 18 : 18 + strip.shape[1]] = strip
-
-    source = table.source if len(table.source) <= 70 else "..." + table.source[-67:]
-    _text(image, f"Coverage of {source}: {table.total} scenes per task x tag", (left, 34), 0.65, thickness=2)
-    _text(
-        image,
-        f"* sparse (red count, below the dashed line at {threshold}): fewer than {table.sparse} scenes "
-        f"or under {table.min_share:.0%} of all",
-        (left, 62),
-        0.48,
-        _SPARSE_INK,
-    )
-    lx = left
-    for i, task in enumerate(tasks):
-        colour = _PALETTE[i % len(_PALETTE)]
-        cv2.rectangle(image, (lx, 78), (lx + 16, 94), colour, -1)
-        entry = f"{task} ({table.scenes.get(task, 0)})"
-        _text(image, entry, (lx + 22, 92), 0.5)
-        lx += 22 + cv2.getTextSize(entry, _FONT, 0.5, 1)[0][0] + 24
+    _draw_labels(image, table, tasks, threshold, log, (left, top, plot_w, plot_h, height))
     return image
 
 
-# ---------------------------------------------------------------------------------------- CLI
+# ------------------------------------------------------------------------------- chart path
 
 
 def default_chart_path(source: str | Path) -> Path:
     """``coverage.png`` next to the source: inside a batch directory, beside a file."""
     source = Path(source)
     return (source if source.is_dir() else source.parent) / CHART_NAME
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments of ``scenegen coverage``."""
-    parser.add_argument(
-        "source", type=Path, help="reference/real Parquet table, batch directory, or manifest YAML"
-    )
-    parser.add_argument(
-        "--out", type=Path, help=f"PNG bar chart to write (default: {CHART_NAME} next to SOURCE)"
-    )
-    parser.add_argument(
-        "--sparse",
-        type=int,
-        default=SPARSE_COUNT,
-        help=f"a cell with fewer scenes is sparse (default {SPARSE_COUNT}; so is one under 1%% of all)",
-    )
-
-
-def run(args: argparse.Namespace) -> int:
-    """``scenegen coverage``: print the table, write the chart; a one-line error and 2 on a bad source."""
-    if args.sparse < 0:
-        print(f"scenegen: error: --sparse {args.sparse}: must be at least 0", file=sys.stderr)
-        return 2
-    try:
-        table = coverage_table(args.source, sparse=args.sparse)
-        out = table.bar_chart(args.out or default_chart_path(args.source))
-    except CoverageError as exc:
-        print(f"scenegen: error: {exc}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(
-            f"scenegen: error: {args.out or default_chart_path(args.source)}: {_first_line(exc)}",
-            file=sys.stderr,
-        )
-        return 2
-    print(table.format_table())
-    print(f"chart: {out}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``scenegen coverage SOURCE [--out chart.png] [--sparse N]`` (``argv`` without the
-    command word)."""
-    parser = argparse.ArgumentParser(
-        prog="scenegen coverage",
-        description="Scenes per (task x tag) of a dataset, sparse cells marked, and a bar chart (PNG).",
-    )
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

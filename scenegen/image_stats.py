@@ -219,7 +219,7 @@ def load_reference_image_stats(path: Path = REFERENCE_IMAGE_STATS) -> tuple[np.n
     """Rows (N, S) and metadata (every other key) of a reference image-statistics file; a one-line
     ValueError naming the file when it is missing, not JSON, or not of this module's statistics."""
     path = Path(path)
-    rebuild = "rebuild it with: python -m scenegen.reference_images --n 60 --out " + str(path)
+    rebuild = "rebuild it with: scenegen reference-images --n 60 --out " + str(path)
     try:
         data = json.loads(path.read_text())
     except FileNotFoundError:

@@ -15,11 +15,9 @@ tables are read by the same code (coverage, evaluation).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
-import sys
 import time
 from collections import Counter
 from pathlib import Path
@@ -499,45 +497,3 @@ def import_real(path: str | Path, out_parquet: str | Path) -> dict:
         "unsupported": unsupported,
         "seconds": round(time.perf_counter() - start, 3),
     }
-
-
-# ---------------------------------------------------------------------------------------- CLI
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments of ``scenegen import-real``."""
-    parser.add_argument("file", type=Path, help="JSON file of measured scenes (format: docs/real_data.md)")
-    parser.add_argument("--out", type=Path, required=True, help="Parquet file to write (atomically)")
-
-
-def run(args: argparse.Namespace) -> int:
-    """``scenegen import-real``: summary on stdout; a one-line error on stderr and 2 on a bad file."""
-    try:
-        stats = import_real(args.file, args.out)
-    except ImportFormatError as exc:
-        print(f"scenegen: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"{stats['rows']} real scenes from {args.file} -> {stats['out']} ({stats['seconds']:.1f} s)")
-    print("tags: " + ", ".join(f"{t} {c}" for t, c in stats["tags"].items()))
-    if stats["unsupported"]:
-        print(
-            f"scenegen: warning: no support surface within {SUPPORT_GAP:g} m below: "
-            + ", ".join(stats["unsupported"]),
-            file=sys.stderr,
-        )
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``scenegen import-real FILE --out OUT.parquet`` (``argv`` without the command)."""
-    parser = argparse.ArgumentParser(
-        prog="scenegen import-real",
-        description="Import measured real scenes (docs/real_data.md) into a Parquet table, tags "
-        "recomputed at the measured poses.",
-    )
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

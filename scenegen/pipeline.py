@@ -9,7 +9,6 @@ lowest-index accepted proposals whatever the number of workers, and a killed bat
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import multiprocessing
 import os
@@ -27,6 +26,7 @@ from scenegen import __version__, world
 from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.check.geometry import run_checks
 from scenegen.config import PipelineConfig, RealismFilter
+from scenegen.manifest.derive import SCENE_PACKAGES, package_versions
 from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
@@ -48,20 +48,6 @@ class Outcome:
     images: dict[str, bytes] = field(default_factory=dict)
     rejection: Rejection | None = None
     seconds: dict[str, float] = field(default_factory=dict)
-
-
-def _versions() -> dict[str, str]:
-    names = (
-        "mujoco",
-        "robosuite",
-        "trimesh",
-        "coacd",
-        "python-fcl",
-        "numpy",
-        "pydantic",
-        "opencv-python-headless",
-    )
-    return {n: importlib.metadata.version(n) for n in names}
 
 
 def process_proposal(
@@ -101,18 +87,7 @@ def process_proposal(
     data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
     mujoco.mj_forward(model, data)
     contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
-    context = TagContext.of_scene(
-        model,
-        data,
-        catalog,
-        proposal.target,
-        proposal.objects,
-        proposal.furniture,
-        proposal.lighting,
-        proposal.cameras[0].position,
-        contacts,
-    )
-    tags = measure_tags(context, config.tags)
+    tags = _measure_tags(model, data, proposal, contacts, config, catalog)
     checks.append(condition_check(tags, proposal.condition))
     objects = settled_objects(model, proposal, settled.qpos)
     if checks[-1].passed and config.realism is not None:
@@ -124,28 +99,12 @@ def process_proposal(
 
     segmentation: dict[str, int] = {}
     if config.render:
-        from scenegen.render import RENDER_SETTINGS, frames_to_files, process_renderer, segmentation_ids
-
         t0 = time.perf_counter()
-        segmentation = segmentation_ids(
-            model, [o.name for o in proposal.objects], [f.name for f in proposal.furniture]
-        )
-        try:
-            frames = process_renderer().render(
-                model,
-                data,
-                [c.name for c in proposal.cameras],
-                segmentation,
-                [(c.width, c.height) for c in proposal.cameras],
-            )
-        except Exception as exc:  # noqa: BLE001 - a scene that cannot be rendered is rejected, not fatal
-            result = CheckResult(
-                stage="render", check="render", passed=False, label="render_failed", detail=str(exc)[:200]
-            )
-            out.rejection = Rejection.from_check(proposal.index, result)
+        rendered = _render(model, data, proposal)
+        if isinstance(rendered, Rejection):
+            out.rejection = rendered
             return out
-        for cam, frame in zip(proposal.cameras, frames, strict=True):
-            out.images.update(frames_to_files(cam.name, frame))
+        out.images, segmentation = rendered
         out.seconds["render"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -165,14 +124,14 @@ def process_proposal(
         tags=tags,
         predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
-        render=RENDER_SETTINGS if config.render else None,
+        render=_render_settings() if config.render else None,
         contacts=tuple(contacts),
         contact_options=world.CONTACT_OPTIONS,
         checks=tuple(checks),
         settle=settled.stats,
         provenance={
             "scenegen": __version__,
-            "packages": _versions(),
+            "packages": package_versions(SCENE_PACKAGES),
             "pipeline": config.name,
             "pipeline_sha256": config.digest(),
             "catalog_sha256": catalog.sha256,
@@ -180,6 +139,49 @@ def process_proposal(
     )
     out.seconds["store"] = time.perf_counter() - t0  # record + MJCF export; file writes are added later
     return out
+
+
+def _measure_tags(model, data, proposal: SceneProposal, contacts, config: PipelineConfig, catalog: Catalog):
+    """Every tag of the settled scene in ``data`` (scenegen.tags), from the main camera."""
+    context = TagContext.of_scene(
+        model,
+        data,
+        catalog,
+        proposal.target,
+        proposal.objects,
+        proposal.furniture,
+        proposal.lighting,
+        proposal.cameras[0].position,
+        contacts,
+    )
+    return measure_tags(context, config.tags)
+
+
+def _render(model, data, proposal: SceneProposal) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:
+    """PNG files of every camera (rgb, depth, seg) and the segmentation ids; a ``render_failed``
+    rejection when the renderer fails on this scene."""
+    from scenegen.render import frames_to_files, process_renderer, segmentation_ids
+
+    segmentation = segmentation_ids(
+        model, [o.name for o in proposal.objects], [f.name for f in proposal.furniture]
+    )
+    try:
+        frames = process_renderer().render(
+            model,
+            data,
+            [c.name for c in proposal.cameras],
+            segmentation,
+            [(c.width, c.height) for c in proposal.cameras],
+        )
+    except Exception as exc:  # noqa: BLE001 - a scene that cannot be rendered is rejected, not fatal
+        result = CheckResult(
+            stage="render", check="render", passed=False, label="render_failed", detail=str(exc)[:200]
+        )
+        return Rejection.from_check(proposal.index, result)
+    images: dict[str, bytes] = {}
+    for cam, frame in zip(proposal.cameras, frames, strict=True):
+        images.update(frames_to_files(cam.name, frame))
+    return images, segmentation
 
 
 def settled_objects(model: mujoco.MjModel, proposal: SceneProposal, qpos) -> list[SettledObject]:
@@ -221,6 +223,12 @@ def realism_check(
         threshold=settings.min_score,
         detail=f"share of reference layouts at least as far from their {settings.k} nearest neighbours",
     )
+
+
+def _render_settings() -> dict:
+    from scenegen.render import RENDER_SETTINGS
+
+    return RENDER_SETTINGS
 
 
 def _camera_entry(cam, rendered: bool = True) -> dict:

@@ -5,13 +5,12 @@ at run time).
 
 Rebuild the committed file (46 s on 2 cores)::
 
-    MUJOCO_GL=egl python -m scenegen.reference_images --n 60 --workers 2
+    scenegen reference-images --n 60 --workers 2
 """
 
 from __future__ import annotations
 
 import json
-import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,7 +34,7 @@ def _shown(path: Path) -> str:
 
 def _command(n: int, out: Path, recipe: Path, reference: Path) -> str:
     """The command that rebuilds a reference file (workers do not change it: renders are bit-identical)."""
-    command = f"MUJOCO_GL=egl python -m scenegen.reference_images --n {n} --out {_shown(out)}"
+    command = f"scenegen reference-images --n {n} --out {_shown(out)}"
     if recipe.resolve() != REFERENCE_RECIPE.resolve():
         command += f" --recipe {_shown(recipe)}"
     if reference.resolve() != REFERENCE_PARQUET.resolve():
@@ -137,33 +136,3 @@ def build_reference_image_stats(
     atomic_write(out, json.dumps(result, indent=1) + "\n")
     result["seconds"] = round(time.perf_counter() - start, 1)
     return result
-
-
-def _main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(
-        prog="python -m scenegen.reference_images",
-        description="render the first N reference layouts and write their image statistics (JSON)",
-    )
-    parser.add_argument("--n", type=int, default=60, help="reference layouts to render (default 60)")
-    parser.add_argument("--out", type=Path, default=REFERENCE_IMAGE_STATS)
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--recipe", type=Path, default=REFERENCE_RECIPE)
-    parser.add_argument("--reference", type=Path, default=REFERENCE_PARQUET)
-    parser.add_argument("--images", type=Path, default=None, help="also write the RGB images here (PNG)")
-    args = parser.parse_args(argv)
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    try:
-        result = build_reference_image_stats(
-            args.n, args.out, args.workers, args.recipe, args.reference, args.images
-        )
-    except ValueError as exc:
-        print(f"error: {exc}")
-        return 2
-    print(f"wrote {args.out}: {len(result['rows'])} rows of {result['n']} scenes in {result['seconds']} s")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(_main())

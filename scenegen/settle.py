@@ -89,37 +89,8 @@ def settle(
     catalog: Catalog,
 ) -> SettleOutcome:
     """Step until still; check divergence, support and displacement; then run the passive test."""
-    data = mujoco.MjData(model)
-    data.qpos[:] = qpos0
-    data.ctrl[:] = ctrl
-    mujoco.mj_forward(model, data)
     bodies = free_bodies(model)
-    dof = [model.jnt_dofadr[model.body(name).jntadr[0]] for name, _ in bodies]
-    steps_max = int(round(settings.max_time / model.opt.timestep))
-    steps_min = int(round(settings.min_time / model.opt.timestep))
-    still, step = 0, 0
-    lin = ang = 0.0
-    for step in range(1, steps_max + 1):
-        mujoco.mj_step(model, data)
-        v = np.array([data.qvel[d : d + 6] for d in dof]) if dof else np.zeros((0, 6))
-        if not np.isfinite(data.qpos).all() or not np.isfinite(v).all():
-            lin = math.inf
-            break
-        lin = float(np.linalg.norm(v[:, :3], axis=1).max(initial=0.0))
-        ang = float(np.linalg.norm(v[:, 3:], axis=1).max(initial=0.0))
-        if lin > settings.diverged_speed:
-            break
-        still = still + 1 if (lin < settings.still_linear and ang < settings.still_angular) else 0
-        if still >= settings.still_steps and step >= steps_min:
-            break
-    stats = {
-        "sim_time": round(step * model.opt.timestep, 4),
-        "steps": step,
-        "still": still >= settings.still_steps,
-        "final_linear_speed": round(lin, 6) if math.isfinite(lin) else None,
-        "final_angular_speed": round(ang, 6),
-    }
-    qpos = data.qpos.copy()
+    qpos, lin, stats = _step_until_still(model, qpos0, ctrl, settings, bodies)
     diverged = not math.isfinite(lin) or lin > settings.diverged_speed
     checks = [
         _result(
@@ -139,22 +110,9 @@ def settle(
         )
         return SettleOutcome(checks, False, qpos, ctrl, stats)
 
-    surfaces = layout.support_surfaces(proposal.furniture, proposal.objects, catalog)
-    placements = {o.name: o for o in proposal.objects}
-    worst_drop, drop_who, worst_move, move_who, worst_rot = -math.inf, "", 0.0, "", 0.0
-    for name, adr in bodies:
-        obj = placements[name]
-        surface = surfaces[obj.support]
-        pos, quat = qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]
-        # Fell off: its centre left the region of its support, or sank below the support's plane.
-        drop = max(-surface.margin(pos[:2]), surface.z - pos[2])
-        if drop > worst_drop:
-            worst_drop, drop_who = drop, name
-        move = float(np.linalg.norm(pos - np.asarray(obj.position)))
-        rot = rotation_angle(quat, np.asarray(obj.quat))
-        if move > worst_move:
-            worst_move, move_who = move, name
-        worst_rot = max(worst_rot, rot)
+    (worst_drop, drop_who), (worst_move, move_who), worst_rot = _displacements(
+        proposal, catalog, bodies, qpos
+    )
     checks.append(
         _result(
             "fell_off",
@@ -183,6 +141,65 @@ def settle(
     passive = passive_test(model, qpos, ctrl, settings)
     checks.extend(passive)
     return SettleOutcome(checks, all(c.passed for c in passive), qpos, ctrl, stats)
+
+
+def _step_until_still(
+    model: mujoco.MjModel, qpos0: np.ndarray, ctrl: np.ndarray, settings: SettleSettings, bodies
+) -> tuple[np.ndarray, float, dict]:
+    """Step from ``qpos0`` until every free body is still (or diverges, or time runs out); returns the
+    final qpos, the last max linear speed (inf when the state went non-finite) and the stats."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos0
+    data.ctrl[:] = ctrl
+    mujoco.mj_forward(model, data)
+    dof = [model.jnt_dofadr[model.body(name).jntadr[0]] for name, _ in bodies]
+    steps_max = int(round(settings.max_time / model.opt.timestep))
+    steps_min = int(round(settings.min_time / model.opt.timestep))
+    still, step = 0, 0
+    lin = ang = 0.0
+    for step in range(1, steps_max + 1):
+        mujoco.mj_step(model, data)
+        v = np.array([data.qvel[d : d + 6] for d in dof]) if dof else np.zeros((0, 6))
+        if not np.isfinite(data.qpos).all() or not np.isfinite(v).all():
+            lin = math.inf
+            break
+        lin = float(np.linalg.norm(v[:, :3], axis=1).max(initial=0.0))
+        ang = float(np.linalg.norm(v[:, 3:], axis=1).max(initial=0.0))
+        if lin > settings.diverged_speed:
+            break
+        still = still + 1 if (lin < settings.still_linear and ang < settings.still_angular) else 0
+        if still >= settings.still_steps and step >= steps_min:
+            break
+    stats = {
+        "sim_time": round(step * model.opt.timestep, 4),
+        "steps": step,
+        "still": still >= settings.still_steps,
+        "final_linear_speed": round(lin, 6) if math.isfinite(lin) else None,
+        "final_angular_speed": round(ang, 6),
+    }
+    return data.qpos.copy(), lin, stats
+
+
+def _displacements(proposal: SceneProposal, catalog: Catalog, bodies, qpos: np.ndarray):
+    """The worst drop off a support (m, who), the worst move (m, who) and the worst rotation (rad)
+    of the proposal's objects at ``qpos``."""
+    surfaces = layout.support_surfaces(proposal.furniture, proposal.objects, catalog)
+    placements = {o.name: o for o in proposal.objects}
+    worst_drop, drop_who, worst_move, move_who, worst_rot = -math.inf, "", 0.0, "", 0.0
+    for name, adr in bodies:
+        obj = placements[name]
+        surface = surfaces[obj.support]
+        pos, quat = qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]
+        # Fell off: its centre left the region of its support, or sank below the support's plane.
+        drop = max(-surface.margin(pos[:2]), surface.z - pos[2])
+        if drop > worst_drop:
+            worst_drop, drop_who = drop, name
+        move = float(np.linalg.norm(pos - np.asarray(obj.position)))
+        rot = rotation_angle(quat, np.asarray(obj.quat))
+        if move > worst_move:
+            worst_move, move_who = move, name
+        worst_rot = max(worst_rot, rot)
+    return (worst_drop, drop_who), (worst_move, move_who), worst_rot
 
 
 def passive_test(

@@ -12,7 +12,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from scenegen.coverage import CoverageError, coverage_table, main
+from scenegen.cli import main
+from scenegen.coverage import CoverageError, coverage_table
 from scenegen.manifest import Counts, Manifest, Source, write_manifest
 from scenegen.manifest.project import DATASHEET, TRANSFER
 from scenegen.manifest.schema import FileChecksum
@@ -213,17 +214,17 @@ def test_bar_chart_png(tmp_path):
 
 def test_main_prints_the_table_and_writes_the_chart(tmp_path, capsys):
     source = write_batch(tmp_path / "batch", scenes_of(GROUPS))
-    assert main([str(source), "--sparse", "3"]) == 0
+    assert main(["coverage", str(source), "--sparse", "3"]) == 0
     out = capsys.readouterr().out
     assert row_of(out, "upright") == ["upright", "19", "0*", "0*", "19", *["0*"] * 6]
     assert f"chart: {source / 'coverage.png'}" in out
     assert (source / "coverage.png").is_file()  # default: next to the source (inside a batch)
     chart = tmp_path / "c.png"
-    assert main([str(source), "--out", str(chart)]) == 0 and chart.is_file()
+    assert main(["coverage", str(source), "--out", str(chart)]) == 0 and chart.is_file()
 
 
 def test_main_on_a_bad_source_returns_2_with_one_line(tmp_path, capsys):
-    assert main([str(tmp_path / "nope.parquet")]) == 2
+    assert main(["coverage", str(tmp_path / "nope.parquet")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("scenegen: error: ") and err.count("\n") == 1
     assert not (tmp_path / "coverage.png").exists()

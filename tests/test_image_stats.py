@@ -143,7 +143,7 @@ def test_committed_reference_file_loads_and_matches_the_reference_set():
     indices = pq.read_table(REFERENCE_PARQUET, columns=["index"]).column("index").to_pylist()[: meta["n"]]
     assert list(dict.fromkeys(meta["scene_index"])) == indices
     assert meta["camera"][:2] == ["front", "side"]
-    assert "python -m scenegen.reference_images --n 60" in meta["command"]
+    assert "scenegen reference-images --n 60" in meta["command"]
     assert np.all((rows >= 0.0) & (rows <= 1.0))
 
 
@@ -287,8 +287,10 @@ def test_darkened_or_tinted_reference_images_fail_the_check(rendered_reference):
 
 
 def test_command_line_misuse_is_an_error_exit(tmp_path: Path, capsys):
-    assert reference_images._main(["--n", "0", "--out", str(tmp_path / "x.json")]) == 2
-    assert "n=0" in capsys.readouterr().out and not (tmp_path / "x.json").exists()
+    from scenegen.cli import main
+
+    assert main(["reference-images", "--n", "0", "--out", str(tmp_path / "x.json")]) == 2
+    assert "n=0" in capsys.readouterr().err and not (tmp_path / "x.json").exists()
 
 
 @pytest.mark.slow

@@ -12,9 +12,10 @@ import pytest
 
 from scenegen import world
 from scenegen.assets.catalog import load_catalog
+from scenegen.cli import main
 from scenegen.core import layout
 from scenegen.coverage import coverage_table
-from scenegen.importer import ImportFormatError, import_real, main, measure_record, read_records
+from scenegen.importer import ImportFormatError, import_real, measure_record, read_records
 from scenegen.reference import file_sha256, layout_row
 from scenegen.schema.condition import ROBOT_POSES, TAGS
 from scenegen.settle import SettleSettings, passive_test
@@ -240,7 +241,7 @@ def test_main_prints_a_summary(tmp_path, capsys):
     records = json.loads(EXAMPLE.read_text())[2:]
     (tmp_path / "one.json").write_text(json.dumps(records))
     out = tmp_path / "one.parquet"
-    assert main([str(tmp_path / "one.json"), "--out", str(out)]) == 0
+    assert main(["import-real", str(tmp_path / "one.json"), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert f"1 real scenes from {tmp_path / 'one.json'} -> {out}" in text and "on_floor 1" in text
     assert pq.read_table(out).num_rows == 1
@@ -248,7 +249,7 @@ def test_main_prints_a_summary(tmp_path, capsys):
 
 def test_main_on_a_bad_file_returns_2_with_one_line(tmp_path, capsys):
     (tmp_path / "bad.json").write_text("[1, 2")
-    assert main([str(tmp_path / "bad.json"), "--out", str(tmp_path / "x.parquet")]) == 2
+    assert main(["import-real", str(tmp_path / "bad.json"), "--out", str(tmp_path / "x.parquet")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("scenegen: error: ") and err.count("\n") == 1 and "not valid JSON" in err
     assert not (tmp_path / "x.parquet").exists()

@@ -145,13 +145,31 @@ def _unextendable(section: dict, key: str) -> dict:
     return {k: v for k, v in section.items() if k != "steps"} if key == "train" else section
 
 
+def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator) -> None:
+    """Load a checkpoint directory's weights, optimizer and random state into the given objects and
+    its step, losses and CPU time into ``config``; ValueError when it was trained otherwise."""
+    from safetensors.torch import load_file
+
+    saved = json.loads((out / "config.json").read_text())
+    for key in ("denoiser", "encoding", "train", "data", "predicate_version"):
+        if _unextendable(saved[key], key) != _unextendable(config[key], key):
+            raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
+    if saved["step"] > settings.steps:
+        raise ValueError(f"{out}: already trained {saved['step']} steps; --steps must be at least that")
+    state = load_file(str(out / "train_state.safetensors"))
+    model.load_state_dict({k[6:]: v for k, v in state.items() if k.startswith("model.")})
+    ema.load_state_dict(load_file(str(out / "model.safetensors")))
+    optimizer.load_state_dict(_unflat_optimizer(state, saved["optimizer"]))
+    generator.set_state(state["rng"])
+    config.update(step=saved["step"], losses=saved["losses"], cpu_seconds=saved["cpu_seconds"])
+
+
 def train(
     data_path: Path, out: Path, settings: TrainSettings, progress: bool = True, stop_after: int | None = None
 ) -> dict:
     """Train (or resume training) a denoiser on the layouts of ``data_path`` into checkpoint dir ``out``.
 
     ``stop_after``: return after this many steps of this call (tests use it to interrupt a run)."""
-    from safetensors.torch import load_file
     from tqdm import tqdm
 
     torch.manual_seed(settings.seed)
@@ -193,18 +211,7 @@ def train(
         "cpu_seconds": 0.0,
     }
     if (out / "config.json").is_file():
-        saved = json.loads((out / "config.json").read_text())
-        for key in ("denoiser", "encoding", "train", "data", "predicate_version"):
-            if _unextendable(saved[key], key) != _unextendable(config[key], key):
-                raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
-        if saved["step"] > settings.steps:
-            raise ValueError(f"{out}: already trained {saved['step']} steps; --steps must be at least that")
-        state = load_file(str(out / "train_state.safetensors"))
-        model.load_state_dict({k[6:]: v for k, v in state.items() if k.startswith("model.")})
-        ema.load_state_dict(load_file(str(out / "model.safetensors")))
-        optimizer.load_state_dict(_unflat_optimizer(state, saved["optimizer"]))
-        generator.set_state(state["rng"])
-        config.update(step=saved["step"], losses=saved["losses"], cpu_seconds=saved["cpu_seconds"])
+        _resume(out, config, settings, model, ema, optimizer, generator)
 
     scheduler = ddpm_scheduler(settings)
     alphas = scheduler.alphas_cumprod

@@ -30,8 +30,8 @@ from scenegen.store import INDEX, REJECTIONS, read_jsonl, sha256_file
 
 RECIPE_FILE = "pipeline.yaml"
 CHAINED_FILES = (INDEX, REJECTIONS, RECIPE_FILE)  # what a batch's checksum root covers directly
-PACKAGES = (
-    "torch",
+# Packages whose versions shape a stored scene (stamped into each scene.json), and those of a batch.
+SCENE_PACKAGES = (
     "mujoco",
     "robosuite",
     "trimesh",
@@ -41,11 +41,12 @@ PACKAGES = (
     "pydantic",
     "opencv-python-headless",
 )
+PACKAGES = ("torch", *SCENE_PACKAGES)
 
 
-def package_versions() -> dict[str, str]:
-    """Installed versions of the packages that shape a scene (stamped into records and manifests)."""
-    return {name: importlib.metadata.version(name) for name in PACKAGES}
+def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str]:
+    """Installed versions of ``names`` (default: every package that shapes a batch), in that order."""
+    return {name: importlib.metadata.version(name) for name in names}
 
 
 def checksum_root(files: dict[str, str]) -> str:

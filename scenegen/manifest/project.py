@@ -1,13 +1,12 @@
 """The project's own manifest, data_manifest.yaml: the committed reference set, the shipped generator
-checkpoint and the recipe it was trained with, derived from the files. ``python -m
-scenegen.manifest`` rewrites those entries (atomically), keeping every other source (batches
+checkpoint and the recipe it was trained with, derived from the files. ``scenegen manifest
+refresh`` rewrites those entries (atomically), keeping every other source (batches
 added with ``scenegen manifest add``), the datasheet and the transfer section as they are, and
 exports the JSON Schema to docs/manifest.schema.json."""
 
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 from scenegen.manifest.derive import checkpoint_ref, effective_shares
@@ -101,18 +100,13 @@ def project_manifest(existing: Manifest | None = None) -> Manifest:
 def write_json_schema(out: Path = PROJECT_ROOT / "docs" / "manifest.schema.json") -> None:
     """Export the manifest's JSON Schema (docs/manifest.schema.json)."""
     atomic_write(out, json.dumps(Manifest.model_json_schema(), indent=1) + "\n")
-    print(f"wrote {out}")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Refresh the derived entries of a project manifest (default data_manifest.yaml) and the JSON Schema."""
+def refresh(path: Path = MANIFEST) -> Path:
+    """Re-derive a project manifest's entries from the files (``scenegen manifest refresh``), keeping
+    its other sources, datasheet and transfer section, and re-export the JSON Schema. A missing
+    manifest is written anew; an invalid one is an error (ManifestError), so nothing of it is lost."""
     write_json_schema()
-    path = Path(argv[0]) if argv else MANIFEST
-    existing = None
-    if path.exists():
-        existing = read_manifest(path)  # an invalid manifest stops here: nothing of it is dropped
-    else:
-        print(f"{path}: missing; writing a new project manifest", file=sys.stderr)
+    existing = read_manifest(path) if Path(path).exists() else None
     write_manifest(path, project_manifest(existing))
-    print(f"wrote {path}")
-    return 0
+    return Path(path)

@@ -83,7 +83,7 @@ def test_the_committed_project_manifest_passes_and_is_derived_from_the_files(cap
     code, report = run_audit(PROJECT_ROOT / "data_manifest.yaml", capsys)
     assert code == 0, report["violations"]
     committed = read_manifest(PROJECT_ROOT / "data_manifest.yaml")
-    assert committed == project_manifest(committed), "rerun: python -m scenegen.manifest"
+    assert committed == project_manifest(committed), "rerun: scenegen manifest refresh"
 
 
 # ---------------------------------------------------------------- tampered batches
@@ -266,7 +266,7 @@ def test_manifest_add_refuses_a_tampered_batch_and_a_batch_outside(project: Path
 
 def test_the_json_schema_in_docs_is_current():
     committed = json.loads((PROJECT_ROOT / "docs" / "manifest.schema.json").read_text())
-    assert committed == Manifest.model_json_schema(), "rerun: python -m scenegen.manifest"
+    assert committed == Manifest.model_json_schema(), "rerun: scenegen manifest refresh"
 
 
 # ---------------------------------------------------------------- a careful forger

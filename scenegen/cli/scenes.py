@@ -1,0 +1,126 @@
+"""`scenegen generate` and `scenegen show`: a batch of scenes, and its contact sheet."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from scenegen.cli.common import fail
+
+
+def add_commands(sub) -> None:
+    """The ``generate`` and ``show`` subcommands."""
+    gen = sub.add_parser(
+        "generate",
+        help="generate a batch of verified scenes from a pipeline recipe",
+        description="Generate a batch: propose, check, settle and store scenes until --n are accepted.",
+    )
+    gen.add_argument("pipeline", type=Path, help="pipeline YAML, e.g. pipelines/demo.yaml")
+    gen.add_argument("--n", type=int, help="accepted scenes wanted (overrides the recipe's n)")
+    gen.add_argument("--seed", type=int, help="batch seed (overrides the recipe's seed)")
+    gen.add_argument("--max-proposals", type=int, help="give up after this many proposals (default 40 x n)")
+    gen.add_argument(
+        "--out",
+        type=Path,
+        help="output directory (default runs/<name>); the same command on a killed batch resumes it",
+    )
+    gen.add_argument(
+        "--request",
+        metavar="TEXT",
+        help="the request, laid over the recipe's condition, e.g. \"retrieve the mug near edge, not "
+        "clutter\" (tags named are required, 'not TAG' forbidden; docs/conditions.md)",
+    )
+    gen.add_argument(
+        "--proposer",
+        choices=("diffusion", "procedural", "targeted"),
+        help="proposer kind instead of the recipe's (keeps its shared settings): diffusion = the trained "
+        "generator (assets/generator); procedural = rejection sampling from the recipe's distributions; "
+        "targeted = hand-written rules per required tag",
+    )
+    gen.add_argument("--workers", type=int, default=1, help="processes for check/settle/render (default 1)")
+    gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
+    gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    gen.set_defaults(run=generate)
+
+    show = sub.add_parser(
+        "show",
+        help="write a contact sheet PNG of a batch",
+        description="Contact sheet of a batch: RGB thumbnails labelled with scene id, target and tags.",
+    )
+    show.add_argument("batch", type=Path, help="batch directory written by `scenegen generate`")
+    show.add_argument("--out", type=Path, help="PNG to write (default BATCH/contact_sheet.png)")
+    show.add_argument("--camera", help="camera name (default: the first camera of each scene)")
+    show.add_argument("--depth", action="store_true", help="add depth beside each RGB thumbnail")
+    show.add_argument("--seg", action="store_true", help="add segmentation beside each RGB thumbnail")
+    show.add_argument("--max", type=int, default=24, help="at most this many scenes (default 24)")
+    show.add_argument("--columns", type=int, default=4, help="thumbnails per row (default 4)")
+    show.set_defaults(run=show_batch)
+
+
+def generate(args: argparse.Namespace) -> int:
+    from scenegen.assets.catalog import CatalogError
+    from scenegen.config import ConfigError, load_pipeline
+
+    overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
+    if args.no_render:
+        overrides["render"] = False
+    if args.workers < 1:
+        return fail(f"--workers {args.workers}: must be at least 1")
+    try:
+        config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
+    except (ConfigError, CatalogError) as exc:
+        return fail(str(exc))
+    out = args.out or Path("runs") / config.name
+    if config.render:
+        from scenegen.render import gl_problem
+
+        problem = gl_problem()
+        if problem:
+            return fail(problem)
+
+    from scenegen.pipeline import run_batch
+    from scenegen.store import StoreError
+
+    try:
+        summary = run_batch(config, out, workers=args.workers, progress=not args.quiet)
+    except StoreError as exc:
+        return fail(str(exc))
+    rejected = sum(summary.rejections.values())
+    print(
+        f"{summary.accepted} scenes accepted of {summary.proposals} proposals "
+        f"in {summary.wall:.1f} s -> {out}"
+    )
+    if rejected:
+        print("rejections: " + ", ".join(f"{k} {v}" for k, v in summary.rejections.most_common()))
+    print("stage seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in summary.seconds.items()))
+    if summary.accepted < config.n:
+        print(
+            f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted before the "
+            f"proposal cap ({config.proposal_cap}); raise --max-proposals or relax the recipe",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def show_batch(args: argparse.Namespace) -> int:
+    from scenegen.contact_sheet import SheetError, contact_sheet
+
+    try:
+        path = contact_sheet(
+            args.batch,
+            args.out,
+            camera=args.camera,
+            depth=args.depth,
+            seg=args.seg,
+            limit=args.max,
+            columns=args.columns,
+        )
+    except SheetError as exc:
+        return fail(str(exc))
+    print(path)
+    return 0
+
+
+# Values mujoco accepts for MUJOCO_GL on Linux (mujoco/gl_context.py); anything else fails at import.
