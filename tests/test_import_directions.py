@@ -114,6 +114,20 @@ def test_the_generators_encoding_and_cost_import_only_the_core_the_schema_and_th
                 assert module.startswith(allowed), f"diffusion/{name} imports {module}"
 
 
+def test_the_proposers_import_no_stage_and_no_back_end():
+    """Proposers (and the generator they sample) sit below check, settle, tag, render, store, the
+    MuJoCo back end and the runner: they import only the core, the schema, the catalog, each other
+    and the generator's sampling modules."""
+    allowed = CORE_MAY_IMPORT + ("scenegen.propose", "scenegen.diffusion.")
+    below = ("encoding", "cost", "model", "sample", "data")
+    for path in sorted((PACKAGE / "propose").glob("*.py")):
+        for module in imports(path):
+            if module.startswith("scenegen.") and module != "scenegen.propose":
+                assert module.startswith(allowed), f"propose/{path.name} imports {module}"
+                if module.startswith("scenegen.diffusion."):
+                    assert module.split(".")[2] in below, f"propose/{path.name} imports {module}"
+
+
 def test_no_mujoco_import_in_the_core_the_proposers_or_the_encoding_and_cost():
     for path in sorted(PACKAGE.rglob("*.py")):
         relative = str(path.relative_to(PACKAGE.parent))

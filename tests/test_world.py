@@ -160,3 +160,15 @@ def test_robot_without_its_hold_targets_moves(scene):
     ee_move, joint_move = _simulate(model, qpos, np.zeros(model.nu), 0.5)
     assert ee_move > 0.01
     assert joint_move > 0.1
+
+
+@pytest.mark.parametrize("pose_name", sorted(ROBOT_POSES))
+def test_the_cores_shoulder_is_the_models_at_every_named_pose(pose_name):
+    """core.layout.SHOULDER (the generator's cost uses it without MuJoCo) is robot0_link1's origin."""
+    from scenegen.core.layout import SHOULDER
+
+    model = world.robot_spec().compile()
+    data = mujoco.MjData(model)
+    data.qpos[:], data.ctrl[:] = world.initial_state(model, ROBOT_POSES[pose_name], [])
+    mujoco.mj_forward(model, data)
+    assert tuple(float(v) for v in data.body("robot0_link1").xpos) == SHOULDER

@@ -23,6 +23,10 @@ from scenegen.schema.scene import FurniturePlacement, ObjectPlacement
 
 TABLE_SIZE = (0.8, 1.0, 0.05)  # full x, y extents and thickness (m)
 TABLE_TOP_Z = 0.8
+# The Panda's shoulder, the origin of robot0_link1 in the world frame (m): fixed by where the robot
+# stands behind the table, not by its joint angles (joint 1 turns about this point's vertical axis).
+# tests/test_world.py checks it against the MuJoCo model at every named pose.
+SHOULDER = (-0.56, 0.0, 1.245)
 # Assets with a flat top that others may be stacked on (``stack`` support).
 STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})
 # Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.

@@ -104,13 +104,12 @@ class DiffusionProposer:
         self._group: list = []
 
     @functools.lru_cache(maxsize=16)  # noqa: B019 - one cost per request, for the proposer's lifetime
-    def _cost(self, required: tuple[str, ...], robot_pose: tuple[float, ...]):
-        from scenegen.check.geometry import robot_geometry
+    def _cost(self, required: tuple[str, ...]):
+        from scenegen.core.layout import SHOULDER
         from scenegen.diffusion.cost import SceneCost
 
-        shoulder = tuple(float(v) for v in robot_geometry(robot_pose)[1])
         weights = dict.fromkeys(required, self.settings.request_cost)
-        return SceneCost(self.encoding, required, weights, shoulder=shoulder)
+        return SceneCost(self.encoding, required, weights, shoulder=SHOULDER)
 
     def describe(self) -> dict:
         return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
@@ -163,7 +162,7 @@ class DiffusionProposer:
             noise_o.append(torch.randn(1, cfg.slots, cfg.object_width, generator=generator))
             noise_s.append(torch.randn(1, cfg.scene_width, generator=generator))
         required = tuple(condition.required())
-        cost = self._cost(required, tuple(condition.robot_pose)) if s.cost_weight > 0 else None
+        cost = self._cost(required) if s.cost_weight > 0 else None
         objects, scene = sample(
             self.model,
             self.config["train"],
