@@ -49,7 +49,7 @@ from pathlib import Path  # noqa: E402
 
 from scenegen.assets.catalog import load_catalog  # noqa: E402
 from scenegen.config import load_pipeline  # noqa: E402
-from scenegen.diffusion.sweep import best_targets  # noqa: E402
+from scenegen.experiment.sweep import best_targets  # noqa: E402
 from scenegen.pipeline import run_batch  # noqa: E402
 from scenegen.propose.base import PROPOSERS  # noqa: E402
 from scenegen.realism import c2st, feature_matrix, load_rows, record_row  # noqa: E402

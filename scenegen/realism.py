@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from scenegen.core.files import SPLITS, load_rows  # noqa: F401 - both are part of this module's face
 from scenegen.core.layout import FURNITURE, TABLE_TOP_Z
 
-SPLITS = ("train", "heldout")
 HELDOUT_EVERY = 5  # a layout whose proposal index % 5 == 0 is held out
 SUPPORT_KINDS = ("table", "shelf", "bin", "floor", "stacked")
 FURNITURE_KINDS = tuple(sorted(FURNITURE))
@@ -250,16 +250,6 @@ def record_row(record) -> dict:
         blank = TagValue(holds=False, value=float("nan"), threshold=float("nan"), unit="")
         record = record.model_copy(update={"tags": {**record.tags, **dict.fromkeys(missing, blank)}})
     return layout_row(record)
-
-
-def load_rows(path: Path, split: str | None = "train") -> list[dict]:
-    """Rows (dicts) of a reference Parquet file, of one split (``train``, ``heldout``) or all (None)."""
-    if split is not None and split not in SPLITS:
-        raise ValueError(f"split {split!r}: use one of {', '.join(SPLITS)}, or None for all rows")
-    import pyarrow.parquet as pq
-
-    rows = pq.read_table(path).to_pylist()
-    return [row for row in rows if split is None or row["split"] == split]
 
 
 def reference_features(path: Path, split: str | None = "train") -> np.ndarray:

@@ -29,19 +29,12 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from scenegen.core.files import sha256_file
 from scenegen.schema.scene import Rejection, SceneRecord
 
 ASSETS = "_assets"
 INDEX = "index.jsonl"
 REJECTIONS = "rejections.jsonl"
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 @functools.lru_cache(maxsize=4096)

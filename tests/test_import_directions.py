@@ -25,7 +25,19 @@ NO_MUJOCO = (
     "scenegen/diffusion/cost.py",
 )
 CORE_MAY_IMPORT = ("scenegen.core", "scenegen.schema", "scenegen.assets.catalog", "scenegen.paths")
-CORE_LIBRARIES = {"numpy", "scipy", "fcl", "math", "functools", "collections", "dataclasses", "__future__"}
+CORE_LIBRARIES = {
+    "numpy",
+    "scipy",
+    "fcl",
+    "pyarrow",
+    "hashlib",
+    "pathlib",
+    "math",
+    "functools",
+    "collections",
+    "dataclasses",
+    "__future__",
+}
 
 
 def module_name(path: Path) -> str:
@@ -112,6 +124,16 @@ def test_the_generators_encoding_and_cost_import_only_the_core_the_schema_and_th
         for module in imports(PACKAGE / "diffusion" / name):
             if module.startswith("scenegen."):
                 assert module.startswith(allowed), f"diffusion/{name} imports {module}"
+
+
+def test_the_generator_imports_no_stage_no_back_end_and_no_runner():
+    """scenegen/diffusion/ (model, encoding, cost, data, sampling, training) is a component the proposers
+    use: it imports only the core, the schema, the catalog, the paths and itself."""
+    allowed = CORE_MAY_IMPORT + ("scenegen.diffusion",)
+    for path in sorted((PACKAGE / "diffusion").glob("*.py")):
+        for module in imports(path):
+            if module.startswith("scenegen.") and module != "scenegen.diffusion":
+                assert module.startswith(allowed), f"diffusion/{path.name} imports {module}"
 
 
 def test_the_proposers_import_no_stage_and_no_back_end():

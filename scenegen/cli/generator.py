@@ -36,7 +36,7 @@ def add_commands(sub) -> None:
         "condition, then for each w one request per rare tag ('retrieve the TARGET TAG', TARGET the "
         "category holding the tag most often in the held-out reference), cost guidance off and on. "
         "Writes OUT/sweep.md (table), OUT/sweep.png (plot) and OUT/sweep.json. Metrics: "
-        "scenegen/diffusion/sweep.py.",
+        "scenegen/experiment/sweep.py.",
     )
     sw.add_argument(
         "pipeline",
@@ -100,7 +100,7 @@ def sweep(args: argparse.Namespace) -> int:
 
     from scenegen.assets.catalog import CatalogError
     from scenegen.config import ConfigError, load_pipeline
-    from scenegen.diffusion import sweep
+    from scenegen.experiment import sweep
     from scenegen.schema.condition import RARE_TAGS
 
     if args.proposals < 1 or args.workers < 1:

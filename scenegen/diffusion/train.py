@@ -26,13 +26,11 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from scenegen.assets.catalog import load_catalog
+from scenegen.core.files import load_rows, sha256_file
 from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
 from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
-from scenegen.realism import load_rows
 from scenegen.schema.condition import RARE_TAGS
-from scenegen.store import sha256_file
-from scenegen.tags import PREDICATE_VERSION
 
 CHECKPOINT_FORMAT = 1
 
@@ -145,6 +143,17 @@ def _unextendable(section: dict, key: str) -> dict:
     return {k: v for k, v in section.items() if k != "steps"} if key == "train" else section
 
 
+def _data_predicate_version(path: Path) -> str:
+    """The predicate version stamped into a layout table's metadata (the tags the model learns from)."""
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(path).metadata or {}
+    version = meta.get(b"predicate_version")
+    if version is None:
+        raise ValueError(f"{path}: no predicate_version in its metadata; build it with scenegen reference")
+    return version.decode()
+
+
 def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator) -> None:
     """Load a checkpoint directory's weights, optimizer and random state into the given objects and
     its step, losses and CPU time into ``config``; ValueError when it was trained otherwise."""
@@ -204,7 +213,7 @@ def train(
         "tags": list(RARE_TAGS),
         "train": settings.model_dump(),
         "data": {"path": str(data_path), "sha256": sha256_file(data_path), "rows": len(data)},
-        "predicate_version": PREDICATE_VERSION,
+        "predicate_version": _data_predicate_version(data_path),
         "catalog_sha256": catalog.sha256,
         "step": 0,
         "losses": [],
