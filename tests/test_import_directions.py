@@ -1,6 +1,7 @@
 """Import directions (docs/architecture.md): read from the source with an AST walk, function-local
 imports included, so the rules hold whether or not a code path runs.
 
+- no import from a lower family to a higher one (``FAMILIES``, lowest first);
 - no import loops between scenegen modules;
 - the core (scenegen/core/) imports only numpy-level libraries and scenegen's schema, asset catalog
   and paths: never MuJoCo, a renderer, torch or a stage;
@@ -67,6 +68,73 @@ def imports(path: Path) -> set[str]:
 def graph() -> dict[str, set[str]]:
     modules = {module_name(p): p for p in PACKAGE.rglob("*.py")}
     return {name: {m for m in imports(path) if m in modules and m != name} for name, path in modules.items()}
+
+
+# The families, lowest first (docs/architecture.md). A module belongs to the family of its longest
+# matching prefix ("scenegen" itself: the package's face only); it may import its own family and those
+# below, never one above. A new module must be placed here.
+FAMILIES = (
+    ("base", ("scenegen", "scenegen.paths", "scenegen.schema", "scenegen.assets")),
+    ("core", ("scenegen.core",)),
+    ("MuJoCo back end", ("scenegen.world",)),
+    ("generator", ("scenegen.diffusion",)),
+    ("propose", ("scenegen.propose",)),
+    ("check", ("scenegen.check",)),
+    ("settle", ("scenegen.settle",)),
+    ("tag", ("scenegen.tags",)),
+    ("render", ("scenegen.render",)),
+    ("store", ("scenegen.store",)),
+    (
+        "analysis",
+        (
+            "scenegen.realism",
+            "scenegen.scene_score",
+            "scenegen.image_stats",
+            "scenegen.contact_sheet",
+            "scenegen.manifest",
+        ),
+    ),
+    ("runner", ("scenegen.config", "scenegen.pipeline")),
+    (
+        "data tools",
+        (
+            "scenegen.reference",
+            "scenegen.reference_images",
+            "scenegen.importer",
+            "scenegen.coverage",
+            "scenegen.manifest.audit",
+            "scenegen.manifest.audit_files",
+            "scenegen.manifest.project",
+            "scenegen.assets.authoring",
+        ),
+    ),
+    ("experiment", ("scenegen.experiment",)),
+    ("cli", ("scenegen.cli",)),
+)
+
+
+def family(module: str) -> int:
+    """Rank (index into FAMILIES) of the family a module belongs to, by its longest matching prefix."""
+    matches = [
+        (len(prefix), rank)
+        for rank, (_, prefixes) in enumerate(FAMILIES)
+        for prefix in prefixes
+        if module == prefix or (prefix != "scenegen" and module.startswith(prefix + "."))
+    ]
+    assert matches, f"{module} belongs to no family: add it to FAMILIES (and to docs/architecture.md)"
+    return max(matches)[1]
+
+
+def test_no_import_runs_from_a_lower_family_to_a_higher_one():
+    edges = graph()
+    rank = {module: family(module) for module in edges}  # every module has a family
+    upward = [
+        f"{a} ({FAMILIES[rank[a]][0]}) imports {b} ({FAMILIES[rank[b]][0]})"
+        for a, outs in sorted(edges.items())
+        for b in sorted(outs)
+        if rank[b] > rank[a]
+    ]
+    assert not upward, "imports that run up the families:\n" + "\n".join(upward)
 
 
 def test_no_import_loops():
