@@ -31,7 +31,7 @@ from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.store import BatchStore, atomic_write, scene_xml
-from scenegen.tags import PREDICATE_VERSION, TagContext, condition_check, measure_tags
+from scenegen.tags import PREDICATE_VERSION, condition_check, scene_tags
 
 STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
 PROPOSAL_CHUNK = 8  # proposals drawn at a time (each is independent of the chunking)
@@ -87,7 +87,7 @@ def process_proposal(
     data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
     mujoco.mj_forward(model, data)
     contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
-    tags = _measure_tags(model, data, proposal, contacts, config, catalog)
+    tags = scene_tags(model, data, catalog, proposal, contacts, config.tags)
     checks.append(condition_check(tags, proposal.condition))
     objects = settled_objects(model, proposal, settled.qpos)
     if checks[-1].passed and config.realism is not None:
@@ -139,22 +139,6 @@ def process_proposal(
     )
     out.seconds["store"] = time.perf_counter() - t0  # record + MJCF export; file writes are added later
     return out
-
-
-def _measure_tags(model, data, proposal: SceneProposal, contacts, config: PipelineConfig, catalog: Catalog):
-    """Every tag of the settled scene in ``data`` (scenegen.tags), from the main camera."""
-    context = TagContext.of_scene(
-        model,
-        data,
-        catalog,
-        proposal.target,
-        proposal.objects,
-        proposal.furniture,
-        proposal.lighting,
-        proposal.cameras[0].position,
-        contacts,
-    )
-    return measure_tags(context, config.tags)
 
 
 def _render(model, data, proposal: SceneProposal) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:

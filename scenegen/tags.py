@@ -292,6 +292,23 @@ def measure_tags(ctx: TagContext, settings: TagSettings | None = None) -> dict[s
     return tags
 
 
+def scene_tags(model, data, catalog, proposal, contacts, settings: TagSettings | None = None) -> dict:
+    """Every tag (:func:`measure_tags`) of a proposal's scene settled in ``data``, measured from the
+    proposal's main camera (its first); ``contacts``: the settled contact configuration."""
+    context = TagContext.of_scene(
+        model,
+        data,
+        catalog,
+        proposal.target,
+        proposal.objects,
+        proposal.furniture,
+        proposal.lighting,
+        proposal.cameras[0].position,
+        contacts,
+    )
+    return measure_tags(context, settings)
+
+
 def condition_check(tags: dict[str, TagValue], condition: Condition) -> CheckResult:
     """``condition_unmet`` when a required tag does not hold or a forbidden one does."""
     missing = [t for t in condition.required() if not tags[t].holds]

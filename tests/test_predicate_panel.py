@@ -33,7 +33,7 @@ from scenegen.reference import read_reference
 from scenegen.schema.condition import TAGS
 from scenegen.schema.scene import SceneProposal, TagValue
 from scenegen.settle import contact_configuration
-from scenegen.tags import PREDICATE_VERSION, TagContext, TagSettings, measure_tags
+from scenegen.tags import PREDICATE_VERSION, TagSettings, scene_tags
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 PANEL_FILE = REPO_ROOT / "tests" / "data" / "predicate_panel.json"
@@ -82,22 +82,11 @@ def replay(proposal: SceneProposal, qpos, ctrl, catalog: Catalog) -> tuple[dict[
     mujoco.mj_forward(model, data)
     names = [o.name for o in proposal.objects]
     contacts = contact_configuration(model, data.qpos.copy(), names)
-    context = TagContext.of_scene(
-        model,
-        data,
-        catalog,
-        proposal.target,
-        proposal.objects,
-        proposal.furniture,
-        proposal.lighting,
-        proposal.cameras[0].position,
-        contacts,
-    )
     poses = {}
     for name in names:
         adr = model.joint(f"{name}_joint").qposadr[0]
         poses[name] = [round(float(v), 6) for v in data.qpos[adr : adr + 7]]
-    return measure_tags(context, TagSettings()), poses
+    return scene_tags(model, data, catalog, proposal, contacts, TagSettings()), poses
 
 
 def record(path: Path = PANEL_FILE) -> dict:
