@@ -28,6 +28,7 @@ from scenegen.check.geometry import run_checks
 from scenegen.config import PipelineConfig, RealismFilter
 from scenegen.manifest.derive import SCENE_PACKAGES, package_versions
 from scenegen.propose.base import PROPOSERS, Proposer
+from scenegen.render import RENDER_SETTINGS  # settings only: no GL is touched at import
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.store import BatchStore, atomic_write, scene_xml
@@ -89,9 +90,10 @@ def process_proposal(
     contacts = contact_configuration(model, settled.qpos, [o.name for o in proposal.objects])
     tags = scene_tags(model, data, catalog, proposal, contacts, config.tags)
     checks.append(condition_check(tags, proposal.condition))
-    objects = settled_objects(model, proposal, settled.qpos)
-    if checks[-1].passed and config.realism is not None:
-        checks.append(realism_check(proposal, objects, config.realism))
+    if checks[-1].passed:  # settled poses and the realism score only for scenes that meet the request
+        objects = settled_objects(model, proposal, settled.qpos)
+        if config.realism is not None:
+            checks.append(realism_check(proposal, objects, config.realism))
     out.seconds["tag"] = time.perf_counter() - t0
     if not checks[-1].passed:
         out.rejection = Rejection.from_check(proposal.index, checks[-1])
@@ -124,7 +126,7 @@ def process_proposal(
         tags=tags,
         predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
-        render=_render_settings() if config.render else None,
+        render=RENDER_SETTINGS if config.render else None,
         contacts=tuple(contacts),
         contact_options=world.CONTACT_OPTIONS,
         checks=tuple(checks),
@@ -207,12 +209,6 @@ def realism_check(
         threshold=settings.min_score,
         detail=f"share of reference layouts at least as far from their {settings.k} nearest neighbours",
     )
-
-
-def _render_settings() -> dict:
-    from scenegen.render import RENDER_SETTINGS
-
-    return RENDER_SETTINGS
 
 
 def _camera_entry(cam, rendered: bool = True) -> dict:

@@ -11,7 +11,6 @@ It stands in for real data and says so: its manifest entry has origin ``referenc
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections import Counter
 from collections.abc import Iterator
@@ -21,6 +20,7 @@ import numpy as np
 
 from scenegen.assets.catalog import load_catalog
 from scenegen.config import PipelineConfig
+from scenegen.core.files import sha256_file
 from scenegen.pipeline import ordered_outcomes
 from scenegen.propose.base import PROPOSERS
 from scenegen.realism import HELDOUT_EVERY, layout_row  # noqa: F401 - both are part of this module's face
@@ -108,8 +108,7 @@ def tag_rates(table) -> dict[str, tuple[int, float]]:
     return rates
 
 
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+file_sha256 = sha256_file  # the name tests and importer use; one implementation (core/files.py)
 
 
 REFERENCE_DESCRIPTION = (
