@@ -9,7 +9,7 @@ its settings) sampling the null condition (`unconditional: true`; nothing requir
 rejected as condition_unmet). It is resumable: a killed run continues when the same command is run
 again. Every tag is then read from the stored scene.json files and compared with the held-out
 split of the reference set: each tag's rate must lie within max(1 point, 30 % of the reference
-rate), and the C2ST accuracy (scenegen.realism.c2st, 5 folds) must be at most 0.60. Prints a table,
+rate), and the C2ST accuracy (scenegen.analysis.realism.c2st, 5 folds) must be at most 0.60. Prints a table,
 saves JSON; exit code 1 when a criterion fails.
 """
 
@@ -20,9 +20,9 @@ import json
 import sys
 from pathlib import Path
 
-from scenegen.config import load_pipeline
-from scenegen.pipeline import run_batch
-from scenegen.realism import c2st, feature_matrix, load_rows, mmd, record_row
+from scenegen.analysis.realism import c2st, feature_matrix, load_rows, mmd, record_row
+from scenegen.runner.config import load_pipeline
+from scenegen.runner.pipeline import run_batch
 from scenegen.schema.condition import TAGS
 from scenegen.schema.scene import SceneRecord
 

@@ -19,8 +19,8 @@ import platform
 import tempfile
 from pathlib import Path
 
-from scenegen.config import load_pipeline
-from scenegen.pipeline import STAGES, run_batch
+from scenegen.runner.config import load_pipeline
+from scenegen.runner.pipeline import STAGES, run_batch
 
 
 def measure(config, workers: int) -> dict:

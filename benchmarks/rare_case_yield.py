@@ -47,15 +47,15 @@ import platform  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from scenegen.analysis.realism import c2st, feature_matrix, load_rows, record_row  # noqa: E402
 from scenegen.assets.catalog import load_catalog  # noqa: E402
-from scenegen.config import load_pipeline  # noqa: E402
 from scenegen.experiment.sweep import best_targets  # noqa: E402
-from scenegen.pipeline import run_batch  # noqa: E402
 from scenegen.propose.base import PROPOSERS  # noqa: E402
-from scenegen.realism import c2st, feature_matrix, load_rows, record_row  # noqa: E402
+from scenegen.runner.config import load_pipeline  # noqa: E402
+from scenegen.runner.pipeline import run_batch  # noqa: E402
 from scenegen.schema.condition import RARE_TAGS  # noqa: E402
 from scenegen.schema.scene import SceneRecord  # noqa: E402
-from scenegen.store import measure_stored_scene  # noqa: E402
+from scenegen.store.batch import measure_stored_scene  # noqa: E402
 
 
 def cpu_seconds() -> float:

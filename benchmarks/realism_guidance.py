@@ -18,10 +18,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.config import load_pipeline
+from scenegen.audit.manifest import audit
 from scenegen.manifest import read_manifest
-from scenegen.manifest.audit import audit
-from scenegen.pipeline import run_batch
+from scenegen.runner.config import load_pipeline
+from scenegen.runner.pipeline import run_batch
 
 
 def main() -> int:

@@ -23,6 +23,23 @@ DEMO = Path(__file__).resolve().parents[1] / "pipelines" / "procedural.yaml"
 SMALL = (160, 120)  # width, height of the cameras of small_recipe
 
 
+REFERENCE = Path(__file__).resolve().parents[1] / "pipelines" / "reference.yaml"
+
+
+def stored_scenes(batch: Path) -> list[Path]:
+    """The scene directories of a stored batch, in order."""
+    return sorted(p for p in batch.glob("scene_*") if p.is_dir())
+
+
+def generate_request(out: Path, request: str, proposer: str, n: int = 1, max_proposals: int = 40) -> int:
+    """``scenegen generate`` of the reference recipe for a free-text request, unrendered, seed 3."""
+    from scenegen.cli import main
+
+    argv = ["generate", str(REFERENCE), "--request", request, "--proposer", proposer, "--n", str(n)]
+    argv += ["--max-proposals", str(max_proposals), "--seed", "3", "--out", str(out)]
+    return main(argv + ["--no-render", "--quiet"])
+
+
 def place(
     catalog: Catalog,
     name: str,

@@ -16,7 +16,6 @@ import fcl
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
-from scenegen import world
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
 from scenegen.core.solids import (
@@ -29,6 +28,7 @@ from scenegen.core.solids import (
     signed_distance,
 )
 from scenegen.schema.scene import CheckResult, SceneProposal
+from scenegen.sim import world
 
 
 class CheckSettings(BaseModel):

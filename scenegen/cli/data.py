@@ -40,7 +40,7 @@ def _add_reference(sub) -> None:
 
 
 def _add_coverage_and_import(sub) -> None:
-    from scenegen.coverage import CHART_NAME, SPARSE_COUNT  # numpy only: cheap to import for --help
+    from scenegen.data.coverage import CHART_NAME, SPARSE_COUNT  # numpy only: cheap to import for --help
 
     cov = sub.add_parser(
         "coverage",
@@ -129,7 +129,7 @@ def _add_reference_images(sub) -> None:
         help="render the first N reference layouts; their image statistics are the image check's reference",
         description=(
             "Render the first N accepted layouts of the reference set exactly as its recipe makes them and "
-            "write their image statistics (scenegen/image_stats.py) as JSON: the reference of the "
+            "write their image statistics (scenegen/analysis/image_stats.py) as JSON: the reference of the "
             "image_stats realism check. The bundled one: assets/reference/image_stats.json."
         ),
     )
@@ -144,7 +144,7 @@ def _add_reference_images(sub) -> None:
 
 def reference(args: argparse.Namespace) -> int:
     from scenegen.assets.catalog import CatalogError
-    from scenegen.config import ConfigError, load_pipeline
+    from scenegen.runner.config import ConfigError, load_pipeline
 
     try:
         config = load_pipeline(args.pipeline, {"n": args.n, "seed": args.seed, "render": False})
@@ -152,15 +152,15 @@ def reference(args: argparse.Namespace) -> int:
         return fail(str(exc))
     if args.workers < 1:
         return fail(f"--workers {args.workers}: must be at least 1")
-    from scenegen.reference import build_reference, read_reference, tag_rates
+    from scenegen.data.reference import build_reference, read_reference, tag_rates
 
     stats = build_reference(config, args.out, workers=args.workers, progress=not args.quiet)
     table, _ = read_reference(args.out)
     print(f"{stats['rows']} layouts of {stats['proposals']} proposals -> {args.out}")
     print("tag rates: " + ", ".join(f"{t} {c} ({r:.1%})" for t, (c, r) in tag_rates(table).items()))
     if args.manifest:
+        from scenegen.data.reference import reference_source
         from scenegen.manifest import ManifestError, add_source
-        from scenegen.reference import reference_source
 
         try:
             add_source(args.manifest, reference_source(args.out, args.manifest.parent), replace=True)
@@ -172,7 +172,7 @@ def reference(args: argparse.Namespace) -> int:
 
 def coverage(args: argparse.Namespace) -> int:
     """``scenegen coverage``: print the table, write the chart; a one-line error and 2 on a bad source."""
-    from scenegen.coverage import CoverageError, coverage_table, default_chart_path
+    from scenegen.data.coverage import CoverageError, coverage_table, default_chart_path
 
     if args.sparse < 0:
         return fail(f"--sparse {args.sparse}: must be at least 0")
@@ -191,8 +191,8 @@ def coverage(args: argparse.Namespace) -> int:
 
 def import_real(args: argparse.Namespace) -> int:
     """``scenegen import-real``: summary on stdout; a one-line error on stderr and 2 on a bad file."""
-    from scenegen.importer import SUPPORT_GAP, ImportFormatError
-    from scenegen.importer import import_real as run_import
+    from scenegen.data.importer import SUPPORT_GAP, ImportFormatError
+    from scenegen.data.importer import import_real as run_import
 
     try:
         stats = run_import(args.file, args.out)
@@ -210,7 +210,7 @@ def import_real(args: argparse.Namespace) -> int:
 
 
 def audit(args: argparse.Namespace) -> int:
-    from scenegen.manifest.audit import audit
+    from scenegen.audit.manifest import audit
 
     if not args.manifest.is_file():
         return fail(
@@ -222,8 +222,8 @@ def audit(args: argparse.Namespace) -> int:
 
 
 def manifest(args: argparse.Namespace) -> int:
+    from scenegen.audit.manifest import audit
     from scenegen.manifest import ManifestError, add_source, read_manifest, relocate
-    from scenegen.manifest.audit import audit
 
     batch_manifest = args.batch / "manifest.yaml"
     if not batch_manifest.is_file():
@@ -243,8 +243,8 @@ def manifest(args: argparse.Namespace) -> int:
 
 
 def manifest_refresh(args: argparse.Namespace) -> int:
+    from scenegen.data.project_manifest import refresh
     from scenegen.manifest import ManifestError
-    from scenegen.manifest.project import refresh
 
     try:
         path = refresh(args.manifest)
@@ -255,7 +255,7 @@ def manifest_refresh(args: argparse.Namespace) -> int:
 
 
 def reference_images(args: argparse.Namespace) -> int:
-    from scenegen.reference_images import build_reference_image_stats
+    from scenegen.data.reference_images import build_reference_image_stats
 
     try:
         result = build_reference_image_stats(

@@ -99,8 +99,8 @@ def sweep(args: argparse.Namespace) -> int:
     import torch
 
     from scenegen.assets.catalog import CatalogError
-    from scenegen.config import ConfigError, load_pipeline
     from scenegen.experiment import sweep
+    from scenegen.runner.config import ConfigError, load_pipeline
     from scenegen.schema.condition import RARE_TAGS
 
     if args.proposals < 1 or args.workers < 1:
@@ -120,7 +120,7 @@ def sweep(args: argparse.Namespace) -> int:
         )
     if not args.reference.is_file():
         return fail(f"--reference {args.reference}: no such Parquet file")
-    from scenegen.realism import load_rows
+    from scenegen.analysis.realism import load_rows
 
     torch.set_num_threads(1)  # the sampler's CPU time is one thread's, like each check/settle worker's
     heldout = load_rows(args.reference, "heldout")

@@ -60,7 +60,7 @@ def add_commands(sub) -> None:
 
 def generate(args: argparse.Namespace) -> int:
     from scenegen.assets.catalog import CatalogError
-    from scenegen.config import ConfigError, load_pipeline
+    from scenegen.runner.config import ConfigError, load_pipeline
 
     overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
     if args.no_render:
@@ -73,14 +73,14 @@ def generate(args: argparse.Namespace) -> int:
         return fail(str(exc))
     out = args.out or Path("runs") / config.name
     if config.render:
-        from scenegen.render import gl_problem
+        from scenegen.render.offscreen import gl_problem
 
         problem = gl_problem()
         if problem:
             return fail(problem)
 
-    from scenegen.pipeline import run_batch
-    from scenegen.store import StoreError
+    from scenegen.runner.pipeline import run_batch
+    from scenegen.store.batch import StoreError
 
     try:
         summary = run_batch(config, out, workers=args.workers, progress=not args.quiet)
@@ -105,7 +105,7 @@ def generate(args: argparse.Namespace) -> int:
 
 
 def show_batch(args: argparse.Namespace) -> int:
-    from scenegen.contact_sheet import SheetError, contact_sheet
+    from scenegen.analysis.contact_sheet import SheetError, contact_sheet
 
     try:
         path = contact_sheet(

@@ -3,7 +3,7 @@ rest on (table, floor strip, furniture tops, the flat tops of objects for stacki
 
 Pure: numpy, the schema and the asset catalog. Every stage that reasons about supports (proposers,
 the generator's encoding and cost, check, settle, tag) reads them here; the MuJoCo back end
-(scenegen/world.py) builds its bodies from the same numbers.
+(scenegen/sim/world.py) builds its bodies from the same numbers.
 
 Frame: MuJoCo world, metres. The table top is the plane z = ``TABLE_TOP_Z`` over the rectangle
 |x| <= TABLE_SIZE[0]/2, |y| <= TABLE_SIZE[1]/2; the robot base sits behind it at negative x.
@@ -25,7 +25,7 @@ TABLE_SIZE = (0.8, 1.0, 0.05)  # full x, y extents and thickness (m)
 TABLE_TOP_Z = 0.8
 # The Panda's shoulder, the origin of robot0_link1 in the world frame (m): fixed by where the robot
 # stands behind the table, not by its joint angles (joint 1 turns about this point's vertical axis).
-# tests/test_world.py checks it against the MuJoCo model at every named pose.
+# tests/sim/test_world.py checks it against the MuJoCo model at every named pose.
 SHOULDER = (-0.56, 0.0, 1.245)
 # Assets with a flat top that others may be stacked on (``stack`` support).
 STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})

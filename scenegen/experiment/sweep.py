@@ -115,8 +115,8 @@ def run_sweep(
     from tqdm import tqdm
 
     from scenegen.assets.catalog import load_catalog
-    from scenegen.pipeline import ordered_outcomes
     from scenegen.propose.diffusion import DiffusionProposer
+    from scenegen.runner.pipeline import ordered_outcomes
 
     catalog = load_catalog()
     base = config.model_copy(update={"render": False})
@@ -189,7 +189,7 @@ def _diversity(features: np.ndarray, scale: np.ndarray) -> float:
 
 def summarize(result: CellResult, heldout: Sequence[dict], seed: int) -> dict:
     """The sweep's metrics of one cell (see the module docstring)."""
-    from scenegen.realism import c2st, feature_matrix, mmd, record_row
+    from scenegen.analysis.realism import c2st, feature_matrix, mmd, record_row
 
     cell = result.cell
     passed = len(result.accepted) + result.rejections.get("condition_unmet", 0)
@@ -363,7 +363,7 @@ def plot(rows: Sequence[dict], size: tuple[int, int] = (1000, 700)) -> bytes:
 
 def write_report(out: Path, rows: Sequence[dict], meta: dict) -> None:
     """sweep.json, sweep.md and sweep.png in ``out`` (each written atomically)."""
-    from scenegen.store import atomic_write
+    from scenegen.store.batch import atomic_write
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write(out / "sweep.json", json.dumps({**meta, "cells": list(rows)}, indent=1) + "\n")

@@ -1,6 +1,7 @@
 """The data manifest: schema (schema.py), entries derived from files (derive.py), atomic reading,
-writing and merging (io.py), the batch realism checks (realism_checks.py) and ``scenegen audit``
-(audit.py). docs/manifest.md describes the ledger; docs/manifest.schema.json is its JSON Schema."""
+writing and merging (io.py) and the batch realism checks (realism_checks.py); ``scenegen audit``
+verifies it (scenegen/audit/). docs/manifest.md describes the ledger; docs/manifest.schema.json is
+its JSON Schema."""
 
 from scenegen.manifest.io import (
     ManifestError,

@@ -26,7 +26,7 @@ from scenegen.manifest.schema import (
     Source,
 )
 from scenegen.paths import PROJECT_ROOT
-from scenegen.store import INDEX, REJECTIONS, read_jsonl, sha256_file
+from scenegen.store.batch import INDEX, REJECTIONS, read_jsonl, sha256_file
 
 RECIPE_FILE = "pipeline.yaml"
 CHAINED_FILES = (INDEX, REJECTIONS, RECIPE_FILE)  # what a batch's checksum root covers directly

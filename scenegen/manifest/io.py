@@ -10,7 +10,7 @@ import yaml
 from pydantic import ValidationError
 
 from scenegen.manifest.schema import SCHEMA_VERSION, Manifest, Source
-from scenegen.store import atomic_write
+from scenegen.store.batch import atomic_write
 
 HEADER = (
     f"# scenegen data manifest, schema v{SCHEMA_VERSION} (scenegen/manifest/schema.py; JSON Schema: "

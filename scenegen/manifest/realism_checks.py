@@ -1,11 +1,11 @@
 """The realism checks a batch carries in its manifest, each against the committed reference set.
 
 - ``layout_c2st``: classifier two-sample test of the batch's settled layouts against reference layouts
-  of the same request (scenegen.realism.c2st); passes at accuracy <= ``C2ST_THRESHOLD``.
-- ``layout_mmd``: kernel MMD^2 of the same two samples (scenegen.realism.mmd); passes at
+  of the same request (scenegen.analysis.realism.c2st); passes at accuracy <= ``C2ST_THRESHOLD``.
+- ``layout_mmd``: kernel MMD^2 of the same two samples (scenegen.analysis.realism.mmd); passes at
   MMD^2 <= ``MMD_THRESHOLD``.
 - ``image_stats``: exposure and colour statistics of the batch's RGB renders against rendered
-  reference scenes (scenegen.image_stats; assets/reference/image_stats.json, committed: nothing is
+  reference scenes (scenegen.analysis.image_stats; assets/reference/image_stats.json, committed: nothing is
   downloaded).
 
 Each check records the checksum root of the batch it was computed on, the reference file's sha256 and
@@ -19,9 +19,12 @@ from pathlib import Path
 
 from scenegen.manifest.schema import RealismCheck, RealismReference
 from scenegen.paths import PROJECT_ROOT
-from scenegen.store import INDEX, read_jsonl, sha256_file
+from scenegen.store.batch import INDEX, read_jsonl, sha256_file
 
 REFERENCE_TABLE = PROJECT_ROOT / "assets" / "reference" / "reference.parquet"
+# The feature set's name in recorded manifests: the function's path when checks were first recorded
+# (it now lives in scenegen.analysis.realism); kept so that recorded checks still audit equal.
+FEATURES = "scenegen.realism.layout_features"
 REFERENCE_IMAGES = PROJECT_ROOT / "assets" / "reference" / "image_stats.json"
 MIN_SAMPLES = 20
 MIN_REFERENCE = 50  # the narrowest reference subset used; wider subsets are taken below it
@@ -60,7 +63,7 @@ def reference_subset(rows: list[dict], condition, unconditional: bool = False) -
 
 def batch_layout_rows(batch: Path) -> list[dict]:
     """The settled layouts of a batch's scenes, in index order, as reference-table rows."""
-    from scenegen.realism import record_row
+    from scenegen.analysis.realism import record_row
     from scenegen.schema.scene import SceneRecord
 
     rows = []
@@ -86,7 +89,7 @@ def layout_checks(
 ) -> list[RealismCheck]:
     """``layout_c2st`` and ``layout_mmd`` of layout ``rows`` against the reference subset of the
     request. Fewer than 5 rows (the C2ST's folds) give ``insufficient`` checks with value 0."""
-    from scenegen.realism import c2st, feature_matrix, load_rows, mmd
+    from scenegen.analysis.realism import c2st, feature_matrix, load_rows, mmd
 
     subset, description = reference_subset(load_rows(reference, None), condition, unconditional)
     ref = RealismReference(source=_relative(reference), sha256=sha256_file(reference), subset=description)
@@ -108,7 +111,7 @@ def layout_checks(
             value=c2st_value,
             threshold=C2ST_THRESHOLD,
             status=_status(len(rows), c2st_value, C2ST_THRESHOLD),
-            settings={"seed": seed, "folds": 5, "features": "scenegen.realism.layout_features"},
+            settings={"seed": seed, "folds": 5, "features": FEATURES},
             details=c2st_details,
             **common,
         ),
@@ -126,7 +129,7 @@ def layout_checks(
 
 def image_check(batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES) -> RealismCheck:
     """``image_stats`` of a rendered batch's RGB images against the committed reference renders."""
-    from scenegen.image_stats import (
+    from scenegen.analysis.image_stats import (
         IMAGE_STATS_THRESHOLD,
         batch_image_statistics,
         image_stats_check,

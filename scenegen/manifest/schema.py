@@ -5,7 +5,7 @@ One ledger for every source of scenes a trainer may use: where it came from (``o
 and their checksums (derived from the files, never typed by hand), how to replay it, how it is
 weighted in training, whether it passed its realism checks, why proposals were rejected, and what it
 did for the downstream policy. Which fields a source must carry depends on its origin (see
-:class:`Source`). ``scenegen audit`` (scenegen/manifest/audit.py) trusts none of it and verifies all
+:class:`Source`). ``scenegen audit`` (scenegen/audit/manifest.py) trusts none of it and verifies all
 of it against the files. The JSON Schema is exported to docs/manifest.schema.json.
 
 Paths (``location``, checkpoint ``path``) are relative to the folder of the manifest that holds them
@@ -196,7 +196,7 @@ class Source(_Entry):
     description: str = ""
     counts: Counts
     checksums: Checksums
-    predicate_version: str | None = None  # scenegen.tags.PREDICATE_VERSION of the stored tags
+    predicate_version: str | None = None  # scenegen.tags.predicates.PREDICATE_VERSION of the stored tags
     catalog_sha256: str | None = None
     generator: Generator | None = None
     pipeline: PipelineRef | None = None

@@ -166,7 +166,7 @@ class SettledObject(ObjectPlacement):
 
 
 class TagValue(_Value):
-    """One rare-case predicate measured on one scene (scenegen/tags.py)."""
+    """One rare-case predicate measured on one scene (scenegen/tags/predicates.py)."""
 
     holds: bool
     value: float
@@ -195,7 +195,7 @@ class SceneRecord(BaseModel):
     lighting: Lighting
     cameras: tuple[dict, ...]  # Camera fields + intrinsics + extrinsics (convention named)
     tags: dict[str, TagValue] = Field(default_factory=dict)  # measured on the settled scene
-    predicate_version: str = ""  # scenegen.tags.PREDICATE_VERSION of the predicates that measured them
+    predicate_version: str = ""  # scenegen.tags.predicates.PREDICATE_VERSION of the predicates used
     segmentation: dict[str, int] = Field(default_factory=dict)  # instance name -> id in *_seg.png
     render: dict | None = None  # render settings used (None: not rendered)
     contacts: tuple[Contact, ...]

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from scenegen.analysis.realism import load_rows
 from scenegen.assets.catalog import load_catalog
 from scenegen.diffusion.cost import SceneCost, disc_radius
 from scenegen.diffusion.encoding import XY_SCALE, SceneEncoding
 from scenegen.diffusion.model import ConditionBatch, Denoiser, DenoiserConfig
 from scenegen.diffusion.sample import sample
-from scenegen.realism import load_rows
 
 REFERENCE = Path(__file__).resolve().parents[2] / "assets" / "reference" / "reference.parquet"
 

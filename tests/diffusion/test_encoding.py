@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scenegen.analysis.realism import load_rows
 from scenegen.assets.catalog import load_catalog
 from scenegen.core import layout
 from scenegen.core.layout import footprint_radius
 from scenegen.diffusion.encoding import SLOTS, STACK_SNAP, XY_SCALE, SceneEncoding
 from scenegen.propose.procedural import DEFAULT_CAMERAS
-from scenegen.realism import load_rows
 from scenegen.schema.condition import Condition
 
 REFERENCE = Path(__file__).resolve().parents[2] / "assets" / "reference" / "reference.parquet"

@@ -10,11 +10,11 @@ from pathlib import Path
 from scenegen.assets.catalog import load_catalog
 from scenegen.check.geometry import run_checks
 from scenegen.cli import main
-from scenegen.config import load_pipeline
 from scenegen.diffusion.encoding import ENCODING_VERSION
 from scenegen.propose.base import PROPOSERS
-from scenegen.store import sha256_file
-from scenegen.tags import PREDICATE_VERSION
+from scenegen.runner.config import load_pipeline
+from scenegen.store.batch import sha256_file
+from scenegen.tags.predicates import PREDICATE_VERSION
 
 ROOT = Path(__file__).resolve().parents[2]
 GENERATOR = ROOT / "assets" / "generator"

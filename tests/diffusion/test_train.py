@@ -12,8 +12,8 @@ import torch
 from safetensors.torch import load_file
 
 from scenegen.diffusion.train import TrainSettings, train
-from scenegen.store import sha256_file
-from scenegen.tags import PREDICATE_VERSION
+from scenegen.store.batch import sha256_file
+from scenegen.tags.predicates import PREDICATE_VERSION
 
 REFERENCE = Path(__file__).resolve().parents[2] / "assets" / "reference" / "reference.parquet"
 TINY = TrainSettings(

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from scenegen.audit.manifest import audit
 from scenegen.manifest import read_manifest
-from scenegen.manifest.audit import audit
 from scenegen.paths import PROJECT_ROOT
 
 RECIPE = PROJECT_ROOT / "pipelines" / "procedural.yaml"
@@ -79,8 +79,8 @@ WRITER = textwrap.dedent(
 
 
 def test_a_writer_killed_midway_leaves_one_version_or_the_other(tmp_path: Path):
+    from scenegen.data.project_manifest import project_manifest
     from scenegen.manifest import dump_manifest
-    from scenegen.manifest.project import project_manifest
 
     base = project_manifest()
     # two versions of different sizes: one with a long datasheet, so a torn write would show

@@ -2,7 +2,7 @@
 
 Layouts: 100 training-split reference layouts of the demo request (retrieve the spoon) against the
 held-out ones, as they are, then spread 1.5x over the table and under lights at half strength.
-The image-statistics check's halves and darkened / tinted renders: tests/test_image_stats.py.
+The image-statistics check's halves and darkened / tinted renders: tests/analysis/test_image_stats.py.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import copy
 
 import pytest
 
+from scenegen.analysis.realism import load_rows
 from scenegen.manifest.realism_checks import (
     C2ST_THRESHOLD,
     MIN_SAMPLES,
@@ -19,7 +20,6 @@ from scenegen.manifest.realism_checks import (
     layout_checks,
     reference_subset,
 )
-from scenegen.realism import load_rows
 from scenegen.schema.condition import Condition
 
 SHA = "0" * 64

@@ -1,0 +1,126 @@
+"""Per-scene realism: how typical one settled scene is of the reference set, and the recipe's
+``unrealistic`` filter built on it.
+
+:class:`SceneScorer` standardizes the layout features (scenegen.analysis.realism.layout_features) of the
+reference layouts and scores a scene by its k-th-nearest-neighbour distance to them against the
+reference layouts' own leave-one-out distances (docs/realism.md, "Per-scene score"). Pure numpy.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from scenegen.analysis.realism import _catalog_categories, feature_matrix, load_rows, record_row
+
+_KNN_CHUNK = 512  # query rows per distance block: 512 x 8,000 float64 is 33 MB
+
+
+def _knn_distance(queries: np.ndarray, reference: np.ndarray, k: int, exclude_self: bool) -> np.ndarray:
+    """Euclidean distance (M,) from each query row to its k-th nearest reference row; with
+    ``exclude_self`` the queries are the reference rows themselves and each leaves itself out."""
+    ref_sq = np.einsum("ij,ij->i", reference, reference)
+    out = np.empty(len(queries))
+    for start in range(0, len(queries), _KNN_CHUNK):
+        q = queries[start : start + _KNN_CHUNK]
+        d2 = np.einsum("ij,ij->i", q, q)[:, None] + ref_sq[None, :] - 2.0 * (q @ reference.T)
+        np.maximum(d2, 0.0, out=d2)
+        if exclude_self:
+            d2[np.arange(len(q)), np.arange(start, start + len(q))] = np.inf
+        out[start : start + len(q)] = np.sqrt(np.partition(d2, k - 1, axis=1)[:, k - 1])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class SceneScorer:
+    """Per-scene typicality against reference layouts, by k-nearest-neighbour distance.
+
+    Features (:func:`layout_features`) are standardized by the reference's mean and standard
+    deviation (a constant feature by 1). Each reference layout keeps its leave-one-out distance to
+    its k-th nearest reference neighbour; a scene's score is the share of reference layouts whose
+    own distance is >= the scene's k-th-neighbour distance to the reference set. In [0, 1]: a
+    held-out layout of the reference distribution scores about uniformly in [0, 1] (median ~0.5),
+    a scene farther from the data than almost every reference layout scores near 0. Build once with
+    :meth:`from_rows` and reuse: scoring one scene against 8,000 layouts takes ~1 ms.
+
+    Fields: ``mean``, ``scale`` (D,) of the raw features; ``reference`` (N, D) standardized;
+    ``reference_knn`` (N,) the sorted leave-one-out k-NN distances (standardized units); ``k``;
+    ``categories`` the feature categories.
+    """
+
+    mean: np.ndarray
+    scale: np.ndarray
+    reference: np.ndarray
+    reference_knn: np.ndarray
+    k: int
+    categories: tuple[str, ...]
+
+    @classmethod
+    def from_rows(cls, rows: Sequence[dict], k: int = 5, categories: Sequence[str] | None = None):
+        """A scorer from reference layout rows (reference Parquet rows, e.g. :func:`load_rows`)."""
+        categories = _catalog_categories() if categories is None else tuple(categories)
+        if k < 1:
+            raise ValueError(f"k={k}: the score needs k >= 1 neighbours")
+        if len(rows) < k + 1:
+            raise ValueError(f"{len(rows)} reference rows: k={k} needs at least {k + 1}")
+        x = feature_matrix(rows, categories)
+        if not np.isfinite(x).all():
+            raise ValueError("reference rows have NaN or infinite features")
+        mean, std = x.mean(axis=0), x.std(axis=0)
+        scale = np.where(std > 1e-12, std, 1.0)
+        z = (x - mean) / scale
+        knn = np.sort(_knn_distance(z, z, k, exclude_self=True))
+        return cls(mean=mean, scale=scale, reference=z, reference_knn=knn, k=k, categories=categories)
+
+    def knn_distances(self, rows: Sequence[dict]) -> np.ndarray:
+        """(M,) distance of each layout to its k-th nearest reference layout (standardized units)."""
+        z = (feature_matrix(rows, self.categories) - self.mean) / self.scale
+        return _knn_distance(z, self.reference, self.k, exclude_self=False)
+
+    def scores(self, rows: Sequence[dict]) -> np.ndarray:
+        """(M,) typicality of each layout, in [0, 1]; see the class docstring."""
+        d = self.knn_distances(rows)
+        n = len(self.reference_knn)
+        return (n - np.searchsorted(self.reference_knn, d, side="left")) / n
+
+    def score(self, row: dict) -> float:
+        """Typicality of one layout (a reference Parquet row), in [0, 1]."""
+        return float(self.scores([row])[0])
+
+
+def scene_score_for_record(record, scorer: SceneScorer) -> float:
+    """Typicality (:class:`SceneScorer`) of a stored scene (``SceneRecord``), through :func:`record_row`."""
+    return scorer.score(record_row(record))
+
+
+@functools.lru_cache(maxsize=2)
+def reference_scorer(reference: str, k: int) -> SceneScorer:
+    """The scorer of a reference Parquet file's train split (built once per process: ~3 s)."""
+    from scenegen.paths import PROJECT_ROOT
+
+    path = Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
+    return SceneScorer.from_rows(load_rows(path, "train"), k)
+
+
+def placement_row(target: str, objects, furniture, lighting) -> dict:
+    """A layout row (the keys :func:`layout_features` reads) of placed objects, furniture and lights."""
+    return {
+        "target": target,
+        "objects": [
+            {
+                "name": o.name,
+                "category": o.category,
+                "support": o.support,
+                "position": list(o.position),
+                "quat": list(o.quat),
+            }
+            for o in objects
+        ],
+        "furniture": [{"kind": f.kind} for f in furniture],
+        "ambient": float(np.mean(lighting.ambient)),
+        "lights": [{"colour": list(light.colour), "intensity": light.intensity} for light in lighting.lights],
+    }

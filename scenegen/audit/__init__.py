@@ -1,0 +1,3 @@
+"""``scenegen audit``: a data manifest verified against its files. manifest.py checks the manifest
+itself (models, recipes, realism presence); files.py walks a source's files (the checksum chain,
+recounts, the source re-derived and its realism recomputed). docs/manifest.md."""

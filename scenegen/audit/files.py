@@ -1,0 +1,286 @@
+"""The file half of ``scenegen audit``: a source's files against what the manifest says of them.
+
+- :func:`audit_table`: a single-file source (the reference Parquet table, imported real data): its
+  sha256, rows and splits, the counts, seed and recipe digest stamped into its metadata, the recipe
+  file (inside the manifest's folder, same digest).
+- :func:`audit_batch`: a batch directory: the checksum chain (every file a scene.json lists, every
+  scene.json against its index row, the index, rejection log and recipe against the manifest), files
+  nobody lists, recounts, and then the whole source re-derived from the files and its realism checks
+  recomputed (scenegen/manifest/derive.py, realism_checks.py) and compared field by field, so that a
+  hand-edited threshold, sample count, origin or provenance field, or a consistently re-chained edit
+  of a scene, cannot pass.
+
+Both report through ``audit.violation(where, check, message)`` / ``audit.warning``; malformed files
+are violations, never tracebacks.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+from collections import Counter
+from pathlib import Path
+
+import yaml
+
+from scenegen.manifest.derive import CHAINED_FILES, RECIPE_FILE, checksum_root
+from scenegen.manifest.io import inside
+from scenegen.manifest.schema import Source
+from scenegen.store.batch import ASSETS, INDEX, REJECTIONS
+
+SCENE_ID = re.compile(r"^scene_\d{6}$")
+# Fields of a batch source that must equal the source re-derived from the batch's files.
+DERIVED_FIELDS = (
+    "origin",
+    "counts",
+    "checksums",
+    "catalog_sha256",
+    "generator",
+    "pipeline",
+    "seed_panel",
+    "rejections_by_label",
+    "rendered",
+)
+REALISM_FIELDS = ("value", "threshold", "comparison", "status", "reference", "samples", "min_samples")
+
+
+def _rows(audit, where: str, path: Path) -> list[dict] | None:
+    """The rows of a JSON-lines log, each a mapping; None (and a violation) when unreadable."""
+    try:
+        lines = path.read_text().splitlines()
+        rows = [json.loads(line) for line in lines if line.strip()]
+    except (OSError, ValueError) as exc:  # ValueError: JSON and UTF-8 decoding errors
+        audit.violation(f"{where}: {path.name}", "count", f"not readable JSON lines ({exc})"[:300])
+        return None
+    for n, row in enumerate(rows, 1):
+        if not isinstance(row, dict) or not isinstance(row.get("proposal_index"), int):
+            audit.violation(f"{where}: {path.name}", "count", f"line {n} is not a row with a proposal_index")
+            return None
+    return rows
+
+
+def audit_table(audit, where: str, source: Source, path: Path) -> None:
+    """A single-file source: a Parquet table of layouts."""
+    at = f"{where}: {source.location}"
+    if not path.is_file():
+        audit.violation(at, "location", "a table source must be a file")
+        return
+    if audit.file_sha256(path) != source.checksums.sha256:
+        audit.violation(at, "checksum", "sha256 differs from the manifest's")
+    try:
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(path)
+    except Exception as exc:  # noqa: BLE001 - any unreadable table is a violation, not a crash
+        audit.violation(at, "count", f"not a readable Parquet table ({exc})"[:300])
+        return
+    meta = {k.decode(): v.decode() for k, v in (table.schema.metadata or {}).items()}
+    counts = source.counts
+    if table.num_rows != counts.scenes:
+        audit.violation(where, "count", f"counts.scenes {counts.scenes}, the table has {table.num_rows} rows")
+    if "split" in table.column_names:
+        found = dict(sorted(Counter(table.column("split").to_pylist()).items()))
+        if found != counts.splits:
+            audit.violation(where, "count", f"counts.splits {counts.splits}, the table has {found}")
+    try:
+        proposals = int(meta["proposals"]) if "proposals" in meta else None
+        labels = {k: int(v) for k, v in (i.split("=") for i in meta.get("rejections", "").split(",") if i)}
+        seed = int(meta["seed"]) if "seed" in meta else None
+    except ValueError:
+        audit.violation(at, "count", "its metadata (proposals, rejections, seed) is not readable")
+        return
+    if proposals is not None and proposals != counts.proposals:
+        audit.violation(where, "count", f"counts.proposals {counts.proposals}, the table records {proposals}")
+    if "rejections" in meta and labels != source.rejections_by_label:
+        audit.violation(where, "rejections", f"rejections_by_label differ from the table's {labels}")
+    recorded = meta.get("predicate_version")
+    if recorded is not None and recorded != source.predicate_version:
+        audit.violation(
+            where,
+            "predicate_version",
+            f"the table was tagged by predicates {recorded}, the manifest says {source.predicate_version}",
+        )
+    panel = source.seed_panel
+    if (
+        panel is not None
+        and seed is not None
+        and (panel.seed, panel.last_index) != (seed, counts.proposals - 1)
+    ):
+        audit.violation(
+            where, "provenance", f"seed_panel {panel.seed}/{panel.last_index}, the table records {seed}"
+        )
+    if source.pipeline is not None:
+        if meta.get("pipeline_sha256", source.pipeline.sha256) != source.pipeline.sha256:
+            audit.violation(where, "provenance", "pipeline.sha256 differs from the table's recipe digest")
+        _recipe_digest(audit, where, audit.folder / source.pipeline.file, source.pipeline.sha256)
+
+
+def _recipe_digest(audit, where: str, recipe: Path, sha256: str):
+    """The recipe file at ``recipe``, validated, its digest compared with ``sha256``; None if bad."""
+    from scenegen.runner.config import PipelineConfig
+
+    if not inside(recipe, audit.folder):
+        audit.violation(where, "provenance", f"pipeline file {recipe} lies outside {audit.folder}")
+        return None
+    try:
+        config = PipelineConfig.model_validate(yaml.safe_load(recipe.read_text()))
+    except FileNotFoundError:
+        audit.violation(where, "provenance", f"pipeline file {recipe.name} is missing")
+        return None
+    except Exception as exc:  # noqa: BLE001 - an unreadable recipe is a violation
+        audit.violation(where, "provenance", f"{recipe.name} is not a valid recipe ({exc})"[:300])
+        return None
+    if config.digest() != sha256:
+        audit.violation(where, "provenance", f"{recipe.name}: its digest differs from pipeline.sha256")
+    return config
+
+
+def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
+    """A batch directory written by ``scenegen generate``."""
+    if not batch.is_dir():
+        audit.violation(where, "location", f"{source.location} is not a batch directory")
+        return
+    for name in CHAINED_FILES:
+        if not (batch / name).is_file():
+            audit.violation(f"{where}: {name}", "location", f"{name} is missing from {source.location}")
+            return
+    for name in CHAINED_FILES:
+        if source.checksums.files.get(name) != audit.file_sha256(batch / name):
+            audit.violation(f"{where}: {name}", "checksum", "sha256 differs from the manifest's")
+    if checksum_root(source.checksums.files) != source.checksums.root:
+        audit.violation(where, "checksum", "checksums.root is not the root of checksums.files")
+    index, rejections = _rows(audit, where, batch / INDEX), _rows(audit, where, batch / REJECTIONS)
+    if index is None or rejections is None:
+        return
+    counts = source.counts
+    dirs = sorted(d.name for d in batch.iterdir() if d.name.startswith("scene_") and d.is_dir())
+    if counts.scenes != len(dirs):
+        audit.violation(where, "count", f"counts.scenes {counts.scenes}, {len(dirs)} scene directories")
+    if len(index) != counts.scenes:
+        audit.violation(where, "count", f"counts.scenes {counts.scenes}, {INDEX} has {len(index)} rows")
+    if len(rejections) != counts.rejected:
+        audit.violation(
+            where, "count", f"counts.rejected {counts.rejected}, {REJECTIONS} has {len(rejections)} rows"
+        )
+    labels = dict(Counter(str(r.get("label")) for r in rejections))
+    if labels != source.rejections_by_label:
+        audit.violation(
+            where, "rejections", f"rejections_by_label {source.rejections_by_label}, the log has {labels}"
+        )
+    twice = [i for i, n in Counter(r["proposal_index"] for r in [*index, *rejections]).items() if n > 1]
+    if twice:
+        audit.violation(where, "count", f"proposal indices {sorted(twice)[:5]} appear more than once")
+    ids = Counter(row.get("scene_id") for row in index)
+    for scene_id in sorted(str(s) for s, n in ids.items() if n > 1):
+        audit.violation(f"{where}: {scene_id}", "count", f"listed {ids[scene_id]} times in {INDEX}")
+    for extra in sorted(set(dirs) - set(ids)):
+        audit.violation(f"{where}: {extra}", "count", f"a scene directory {INDEX} does not list")
+    listed: set[Path] = set()
+    for row in index:
+        listed |= _scene(audit, where, source, batch, row)
+    _unlisted(audit, where, batch, dirs, listed)
+    config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
+    if config is not None:
+        _rederive(audit, where, source, batch, config)
+
+
+def _scene(audit, where: str, source: Source, batch: Path, row: dict) -> set[Path]:
+    """Check one scene of the index; returns the paths its scene.json lists (resolved)."""
+    scene_id = row.get("scene_id")
+    if not isinstance(scene_id, str) or not SCENE_ID.match(scene_id):
+        audit.violation(f"{where}: {INDEX}", "count", f"an index row names scene {scene_id!r}")
+        return set()
+    scene_dir, at = batch / scene_id, f"{where}: {scene_id}"
+    scene_json = scene_dir / "scene.json"
+    if not scene_json.is_file():
+        audit.violation(at, "missing_scene", f"listed in {INDEX} but its directory or scene.json is missing")
+        return set()
+    if not inside(scene_json, batch):
+        audit.violation(f"{at}/scene.json", "location", "a link out of the batch")
+        return set()
+    text = scene_json.read_bytes()
+    if hashlib.sha256(text).hexdigest() != row.get("scene_json_sha256"):
+        audit.violation(f"{at}/scene.json", "checksum", f"sha256 differs from its {INDEX} row")
+    try:
+        record = json.loads(text)
+        files = record["files"]
+        assert isinstance(files, dict) and all(isinstance(v, str) for v in files.values())
+    except (ValueError, KeyError, TypeError, AssertionError):
+        audit.violation(f"{at}/scene.json", "checksum", "not a scene record with a files mapping")
+        return set()
+    if record.get("predicate_version") != source.predicate_version:
+        audit.violation(
+            f"{at}/scene.json",
+            "predicate_version",
+            f"tagged by predicates {record.get('predicate_version')}, the manifest says "
+            f"{source.predicate_version}",
+        )
+    listed = set()
+    for name, sha in sorted(files.items()):
+        own = "/" not in name and name not in ("", ".", "..", "scene.json")
+        shared = name.startswith(f"../{ASSETS}/") and "/" not in name[len(ASSETS) + 4 :]
+        path = scene_dir / name
+        if not (own or shared) or not inside(path, batch):
+            audit.violation(f"{at}/{name}", "location", "scene.json may list only its own files and _assets/")
+        elif not path.is_file():
+            audit.violation(f"{at}/{name}", "missing_file", "listed in scene.json but missing")
+        elif audit.file_sha256(path) != sha:
+            audit.violation(f"{at}/{name}", "checksum", "sha256 differs from scene.json's")
+        else:
+            listed.add(path.resolve())
+    return listed
+
+
+def _unlisted(audit, where: str, batch: Path, dirs: list[str], listed: set[Path]) -> None:
+    """Files in scene directories or _assets/ that no scene.json lists."""
+    for folder in [*(batch / d for d in dirs), batch / ASSETS]:
+        for path in sorted(folder.iterdir()) if folder.is_dir() else []:
+            if path.name != "scene.json" and path.resolve() not in listed:
+                audit.violation(
+                    f"{where}: {path.relative_to(batch)}", "unlisted_file", "a file no scene.json lists"
+                )
+
+
+def _rederive(audit, where: str, source: Source, batch: Path, config) -> None:
+    """Re-derive the source from the batch's files and recompute its realism checks; every field
+    that differs from the manifest is a violation (packages and scenegen version: warnings)."""
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.manifest.derive import batch_source
+    from scenegen.manifest.realism_checks import batch_realism
+
+    try:
+        derived = batch_source(batch, config, load_catalog().sha256, source.predicate_version or "")
+    except Exception as exc:  # noqa: BLE001 - e.g. index and directories disagree (already reported)
+        audit.violation(where, "provenance", f"cannot re-derive the source from its files ({exc})"[:300])
+        return
+    for name in DERIVED_FIELDS:
+        theirs = getattr(derived, name)
+        if getattr(source, name) != theirs:
+            shown = theirs.model_dump(mode="json") if hasattr(theirs, "model_dump") else theirs
+            audit.violation(
+                f"{where}.{name}", "provenance", f"differs from the files: they give {shown}"[:400]
+            )
+    for name in ("packages", "scenegen_version"):
+        if getattr(source, name) != getattr(derived, name):
+            audit.warning(f"{where}.{name}", "provenance", "made with other versions than this scenegen's")
+    recorded = {c.metric: c for c in source.realism}
+    for check in batch_realism(batch, config, source.checksums.root):
+        mine = recorded.get(check.metric)
+        if mine is None:
+            continue  # a missing check is reported by the realism audit
+        differ = [f for f in REALISM_FIELDS if not _same(getattr(mine, f), getattr(check, f))]
+        if differ:
+            audit.violation(
+                f"{where}.realism {check.metric}",
+                "realism",
+                f"recomputed from the files, {', '.join(differ)} differ: value {check.value:.6g}, "
+                f"status {check.status}, threshold {check.threshold}",
+            )
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, float) and isinstance(b, float):
+        return math.isclose(a, b, rel_tol=0.0, abs_tol=1e-6)
+    return a == b

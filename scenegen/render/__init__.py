@@ -1,0 +1,1 @@
+"""Stage render: off-screen RGB, depth and instance segmentation per camera (offscreen.py)."""

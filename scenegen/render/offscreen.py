@@ -1,0 +1,257 @@
+"""Off-screen rendering of settled scenes: RGB, depth and instance segmentation per camera.
+
+One GL context per process (MUJOCO_GL=egl renders on the CPU through Mesa), created once and closed
+explicitly; each scene gets its own MjrContext and MjvScene, which cost far less than a new
+``mujoco.Renderer`` (shared/PITFALLS.md: 0.18 s per renderer, 0.06 + 0.07 s per context).
+
+Outputs, per camera, as PNG bytes:
+- ``rgb``: uint8 RGB under the scene's own lights and ambient;
+- ``depth``: uint16 millimetres along the optical axis (not along the ray), 0 = no return;
+- ``seg``: uint16 instance ids; 0 = background, ids listed in scene.json ``segmentation``.
+Collision geoms (groups 0 and 3) and all sites are hidden; what is seen is what is segmented.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenegen.sim import world
+
+# Chosen by measurement (shared/PITFALLS.md): a 4096 shadow map made one shadowed 640x480 frame 41 ms,
+# 1024 made it 16 ms; at 640x480 the difference in shadow edges is hard to see.
+RENDER_SETTINGS = {
+    "shadowsize": 1024,
+    # The floor's planar reflection re-renders the scene: 0.035 s of 0.19 s per 640x480 frame.
+    "reflections": False,
+    "visible_geom_groups": [world.VISUAL_GROUP, 2],
+    "sites": "hidden",
+    "depth": "uint16 millimetres along the optical axis, 0 = no return",
+    "segmentation": "uint16 instance id, 0 = background; ids in scene.json segmentation",
+    "gl": "MUJOCO_GL",
+}
+MAX_SIZE = (1280, 960)  # largest camera (width, height) the shared framebuffer holds
+ROBOT_BODY_PREFIXES = (*world.ROBOT_PREFIXES, "fixed_mount0_")
+
+
+class RenderUnavailable(RuntimeError):
+    """No usable off-screen GL: the message names MUJOCO_GL and what to do."""
+
+
+def gl_problem() -> str | None:
+    """Why off-screen rendering cannot work here, or None if a GL context can be made."""
+    backend = os.environ.get("MUJOCO_GL", "")
+    try:
+        import mujoco
+
+        with warnings.catch_warnings():  # glfw without a display warns (GLFWError) instead of failing
+            warnings.simplefilter("ignore")
+            context = mujoco.GLContext(64, 64)
+            context.make_current()
+            try:  # a context that cannot load GL fails here
+                mujoco.MjrContext(
+                    mujoco.MjModel.from_xml_string("<mujoco/>"), mujoco.mjtFontScale.mjFONTSCALE_100
+                ).free()
+            finally:
+                context.free()
+    except Exception as exc:  # noqa: BLE001 - any failure means the same thing to the user
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        loaded = getattr(getattr(sys.modules.get("mujoco"), "GLContext", None), "__module__", "none")
+        return (
+            f"off-screen rendering unavailable with MUJOCO_GL={backend or '(unset)'} "
+            f"(mujoco's GL backend: {loaded.removeprefix('mujoco.')}): {reason}; "
+            "use MUJOCO_GL=egl with Mesa's EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) "
+            "or pass --no-render"
+        )
+    return None
+
+
+def segmentation_ids(model, objects: Sequence[str], furniture: Sequence[str]) -> dict[str, int]:
+    """Instance ids: arena (floor and walls) 1, table 2, robot 3, then furniture and objects in order."""
+    ids = {"arena": 1, "table": 2, "robot": 3}
+    for name in [*furniture, *objects]:
+        ids[name] = len(ids) + 1
+    return ids
+
+
+def _geom_instance(model, ids: dict[str, int]) -> np.ndarray:
+    """Instance id of every geom (0 for geoms that belong to no named instance)."""
+    out = np.zeros(model.ngeom, dtype=np.int32)
+    for g in range(model.ngeom):
+        body = model.body(model.geom_bodyid[g]).name
+        if body in ids:
+            out[g] = ids[body]
+        elif body.startswith(ROBOT_BODY_PREFIXES):
+            out[g] = ids["robot"]
+        elif model.geom_bodyid[g] == 0:
+            out[g] = ids["arena"]
+    return out
+
+
+@dataclass
+class Frames:
+    """The images of one camera: rgb (H, W, 3) uint8, depth (H, W) float32 metres (0 = none), seg (H, W)."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    seg: np.ndarray
+
+
+class SceneRenderer:
+    """Renders MuJoCo scenes in this process through one shared GL context."""
+
+    def __init__(self):
+        import mujoco
+
+        problem = gl_problem()
+        if problem:
+            raise RenderUnavailable(problem)
+        self._mujoco = mujoco
+        self._context = mujoco.GLContext(*MAX_SIZE)
+        self._context.make_current()
+        self._con = None
+        self._signature = None
+
+    def close(self) -> None:
+        if self._con is not None:
+            self._con.free()
+            self._con = None
+        if self._context is not None:
+            self._context.free()
+            self._context = None
+
+    def render(
+        self, model, data, cameras: Sequence[str], ids: dict[str, int], size: Sequence[tuple[int, int]]
+    ):
+        """Frames for each camera name at its (width, height); ``data`` must be forwarded."""
+        mj = self._mujoco
+        self._context.make_current()
+        model.vis.quality.shadowsize = RENDER_SETTINGS["shadowsize"]
+        model.vis.global_.offwidth, model.vis.global_.offheight = MAX_SIZE
+        con = self._context_for(model)
+        scene = mj.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
+        scene.flags[mj.mjtRndFlag.mjRND_REFLECTION] = RENDER_SETTINGS["reflections"]
+        option = mj.MjvOption()
+        option.geomgroup[:] = 0
+        for group in RENDER_SETTINGS["visible_geom_groups"]:
+            option.geomgroup[group] = 1
+        option.sitegroup[:] = 0
+        instance = _geom_instance(model, ids)
+        return [
+            self._camera(model, data, con, scene, option, name, wh, instance)
+            for name, wh in zip(cameras, size, strict=True)
+        ]
+
+    def _context_for(self, model):
+        """An MjrContext holding the model's meshes and textures, reused while they stay the same.
+
+        Uploading robosuite's meshes and textures costs ~0.2 s per context; scenes built by
+        world.build_world share one mesh and texture table, so one upload serves a whole batch.
+        """
+        mj = self._mujoco
+        signature = (
+            model.mesh_vertnum.tobytes(),
+            model.mesh_facenum.tobytes(),
+            model.tex_width.tobytes(),
+            model.tex_height.tobytes(),
+            model.hfield_nrow.tobytes(),
+            model.nskin,
+        )
+        if self._con is None or signature != self._signature:
+            if self._con is not None:
+                self._con.free()
+            self._con = mj.MjrContext(model, mj.mjtFontScale.mjFONTSCALE_100)
+            mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
+            self._con.readDepthMap = mj.mjtDepthMap.mjDEPTH_ZEROFAR
+            self._signature = signature
+        return self._con
+
+    def _camera(self, model, data, con, scene, option, name, wh, instance) -> Frames:
+        mj = self._mujoco
+        width, height = wh
+        rect = mj.MjrRect(0, 0, width, height)
+        camera = mj.MjvCamera()
+        camera.type = mj.mjtCamera.mjCAMERA_FIXED
+        camera.fixedcamid = model.camera(name).id
+        mj.mjv_updateScene(model, data, option, None, camera, mj.mjtCatBit.mjCAT_ALL, scene)
+
+        rgb = np.empty((height, width, 3), np.uint8)
+        depth_buffer = np.empty((height, width), np.float32)
+        mj.mjr_render(rect, scene, con)
+        mj.mjr_readPixels(rgb, None, rect, con)
+
+        # Depth is read from the segmentation pass, which is not anti-aliased: read from the RGB pass it
+        # came from one multisample, up to 0.4 px off the pixel centre (60 mm at object edges, measured).
+        scene.flags[mj.mjtRndFlag.mjRND_SEGMENT] = True
+        scene.flags[mj.mjtRndFlag.mjRND_IDCOLOR] = True
+        segrgb = np.empty((height, width, 3), np.uint8)
+        mj.mjr_render(rect, scene, con)
+        mj.mjr_readPixels(segrgb, depth_buffer, rect, con)
+        scene.flags[mj.mjtRndFlag.mjRND_SEGMENT] = False
+        scene.flags[mj.mjtRndFlag.mjRND_IDCOLOR] = False
+
+        # segid + 1 is encoded in the colour; map it to the scene geom, then to our instance id.
+        code = segrgb.astype(np.int64)
+        segid = code[..., 0] + code[..., 1] * 256 + code[..., 2] * 65536
+        lut = np.zeros(scene.ngeom + 2, dtype=np.int32)
+        for i in range(scene.ngeom):
+            g = scene.geoms[i]
+            if g.segid >= 0 and g.objtype == mj.mjtObj.mjOBJ_GEOM:
+                lut[g.segid + 1] = instance[g.objid]
+        seg = lut[np.clip(segid, 0, len(lut) - 1)]
+
+        extent = model.stat.extent
+        near, far = model.vis.map.znear * extent, model.vis.map.zfar * extent
+        # Reversed depth buffer (mjDEPTH_ZEROFAR: 1 at the near plane, 0 at the far plane) -> metres
+        # along the optical axis.
+        depth = near * far / (near + depth_buffer.astype(np.float64) * (far - near))
+        depth[(seg == 0) | (depth_buffer <= 0.0)] = 0.0
+        return Frames(np.flipud(rgb).copy(), np.flipud(depth).astype(np.float32), np.flipud(seg).copy())
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an RGB uint8 or single-channel uint16 image (deterministic)."""
+    import cv2
+
+    if image.ndim == 3:
+        image = image[..., ::-1]  # RGB -> BGR for OpenCV
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def frames_to_files(camera: str, frames: Frames) -> dict[str, bytes]:
+    """{file name: PNG bytes} of one camera's frames."""
+    depth_mm = np.clip(np.round(frames.depth * 1000.0), 0, 65535).astype(np.uint16)
+    return {
+        f"{camera}_rgb.png": encode_png(frames.rgb),
+        f"{camera}_depth.png": encode_png(depth_mm),
+        f"{camera}_seg.png": encode_png(frames.seg.astype(np.uint16)),
+    }
+
+
+_PROCESS_RENDERER: SceneRenderer | None = None
+
+
+def process_renderer() -> SceneRenderer:
+    """This process's renderer, created on first use and closed at exit."""
+    global _PROCESS_RENDERER
+    if _PROCESS_RENDERER is None:
+        import atexit
+
+        _PROCESS_RENDERER = SceneRenderer()
+        atexit.register(close_process_renderer)
+    return _PROCESS_RENDERER
+
+
+def close_process_renderer() -> None:
+    global _PROCESS_RENDERER
+    if _PROCESS_RENDERER is not None:
+        _PROCESS_RENDERER.close()
+        _PROCESS_RENDERER = None

@@ -1,0 +1,183 @@
+"""Pipeline recipes: the validated YAML files in pipelines/.
+
+A recipe names the request (condition), the proposer and its distributions, and the thresholds of
+every stage. Unknown keys, tasks, targets, tags or impossible values are errors that name the field.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Annotated
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
+
+from scenegen.check.geometry import CheckSettings
+from scenegen.propose.base import impossible_request
+from scenegen.propose.diffusion import DiffusionSettings
+from scenegen.propose.procedural import ProceduralSettings
+from scenegen.propose.targeted import TargetedSettings
+from scenegen.schema.condition import Condition, parse_request
+from scenegen.settle.physics import SettleSettings
+from scenegen.tags.predicates import TagSettings
+
+PROPOSER_SETTINGS: dict[str, type[BaseModel]] = {
+    "procedural": ProceduralSettings,
+    "targeted": TargetedSettings,
+    "diffusion": DiffusionSettings,
+}
+
+
+class RealismFilter(BaseModel):
+    """The per-scene ``unrealistic`` filter of a recipe (``realism:``): a settled scene whose
+    typicality (scenegen.analysis.scene_score.SceneScorer) against the reference set's train split is
+    below ``min_score`` is rejected as ``unrealistic``; the score is recorded in every scene's checks."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    min_score: float = Field(0.01, ge=0.0, le=1.0)
+    k: int = Field(5, ge=1, le=50)
+    reference: str = "assets/reference/reference.parquet"  # relative paths: to the project root
+
+
+class ConfigError(ValueError):
+    """A pipeline file is invalid; the message is one line naming the file and field."""
+
+
+class PipelineConfig(BaseModel):
+    """One pipeline recipe.
+
+    Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
+    many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
+    (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
+    ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
+    n: int = Field(20, ge=1, le=1_000_000)
+    seed: int = Field(0, ge=0, lt=2**63)
+    max_proposals: int | None = Field(None, ge=1)
+    condition: Condition = Condition()
+    proposer: Annotated[
+        ProceduralSettings | TargetedSettings | DiffusionSettings, Field(discriminator="kind")
+    ] = ProceduralSettings()
+    checks: CheckSettings = CheckSettings()
+    settle: SettleSettings = SettleSettings()
+    tags: TagSettings = TagSettings()
+    realism: RealismFilter | None = None  # per-scene `unrealistic` filter; None: off
+    render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
+
+    @model_validator(mode="after")
+    def _reachable_request(self):
+        from scenegen.assets.catalog import load_catalog
+
+        problem = impossible_request(self.condition, load_catalog())
+        if problem:
+            raise ValueError(f"condition: {problem}")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _omit_unset_filter(self, handler):
+        # A recipe without the realism filter dumps (and hashes) exactly as before the filter existed,
+        # so the digests stamped into the reference set and earlier batches stay valid.
+        data = handler(self)
+        if data.get("realism", 0) is None:
+            del data["realism"]
+        return data
+
+    @property
+    def proposal_cap(self) -> int:
+        return self.max_proposals or 40 * self.n
+
+    def digest(self) -> str:
+        """sha256 of the canonical JSON of the recipe (overrides included)."""
+        blob = json.dumps(self.model_dump(mode="json"), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()
+
+
+def _fields_at(loc: tuple, proposer: type[BaseModel]) -> list[str]:
+    """Field names of the (nested) model at ``loc`` of a recipe; ``proposer``: the settings model of
+    the recipe's proposer kind."""
+    model: type[BaseModel] = PipelineConfig
+    for part in loc:
+        if model is PipelineConfig and part == "proposer":
+            model = proposer
+            continue
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        annotation = getattr(field, "annotation", None)
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            break
+        model = annotation
+    return list(model.model_fields)
+
+
+def _format_error(path: Path, exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = list(err["loc"])
+    proposer: type[BaseModel] = ProceduralSettings
+    if len(loc) >= 2 and loc[0] == "proposer" and loc[1] in PROPOSER_SETTINGS:
+        proposer = PROPOSER_SETTINGS[loc.pop(1)]  # pydantic names the union member: drop it
+    msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "extra_forbidden":
+        valid = ", ".join(_fields_at(tuple(loc[:-1]), proposer))
+        msg = f"unknown key; valid keys here: {valid} (docs/pipelines.md)"
+    elif err["type"] in ("union_tag_invalid", "union_tag_not_found"):
+        loc.append("kind")
+        kind = err.get("ctx", {}).get("tag")
+        msg = f"unknown proposer kind {kind!r}; valid: {', '.join(PROPOSER_SETTINGS)}"
+    where = ".".join(str(p) for p in loc)
+    more = f" (+{len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
+    return f"{path}: {where + ': ' if where else ''}{msg}{more}"
+
+
+def load_pipeline(
+    path: str | Path,
+    overrides: dict | None = None,
+    request: str | None = None,
+    proposer: str | None = None,
+) -> PipelineConfig:
+    """Read, merge top-level ``overrides`` (e.g. n, seed) and validate a pipeline file.
+
+    ``request``: free text (:func:`~scenegen.schema.condition.parse_request`) laid over the recipe's
+    condition: the task, target and pose it names replace the recipe's, the tags it names are set.
+    ``proposer``: another proposer kind, keeping the recipe's proposer settings that kind shares.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such pipeline file; bundled ones are in pipelines/")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{path}:{line} not valid YAML: {getattr(exc, 'problem', exc)}") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(
+            f"{path}: a pipeline file must be a mapping of keys (name, n, seed, condition, ...)"
+        )
+    raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    if request is not None:
+        try:
+            parsed = parse_request(request)
+        except ValueError as exc:
+            raise ConfigError(f"--request: {exc}") from None
+        condition = dict(raw.get("condition") or {})
+        condition["tags"] = {**(condition.get("tags") or {}), **parsed.pop("tags", {})}
+        condition.update(parsed)
+        raw["condition"] = condition
+    if proposer is not None:
+        settings = PROPOSER_SETTINGS.get(proposer)
+        if settings is None:
+            raise ConfigError(f"--proposer {proposer}: unknown kind; valid: {', '.join(PROPOSER_SETTINGS)}")
+        shared = {k: v for k, v in (raw.get("proposer") or {}).items() if k in settings.model_fields}
+        raw["proposer"] = {**shared, "kind": proposer}
+    try:
+        return PipelineConfig(**raw)
+    except ValidationError as exc:
+        raise ConfigError(_format_error(path, exc)) from None
+    except ValueError as exc:
+        raise ConfigError(f"{path}: {exc}") from None

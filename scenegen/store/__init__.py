@@ -1,0 +1,1 @@
+"""Stage store: the batch directory, written atomically and resumable (batch.py)."""

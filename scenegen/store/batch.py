@@ -1,0 +1,277 @@
+"""The scene store: one directory per batch, written only by the coordinating process.
+
+Layout of a batch ``OUT/``::
+
+    pipeline.yaml       the resolved recipe (overrides applied)
+    _assets/            every mesh and texture the scenes reference, once per batch
+    scene_000012/       one accepted scene: scene.json (the record) and scene.xml (MJCF)
+    index.jsonl         one row per accepted scene, in proposal-index order
+    rejections.jsonl    one row per rejected proposal, keyed by proposal index
+    manifest.yaml       the batch manifest (counts derived from the files above)
+    timings.json        wall-clock time per stage (not part of the deterministic output)
+
+Scenes are written to a temporary directory and renamed into place, so a scene directory is either
+complete or absent.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import shutil
+import xml.etree.ElementTree as ET
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from scenegen.core.files import sha256_file
+from scenegen.schema.scene import Rejection, SceneRecord
+
+ASSETS = "_assets"
+INDEX = "index.jsonl"
+REJECTIONS = "rejections.jsonl"
+
+
+@functools.lru_cache(maxsize=4096)
+def source_sha256(path: str) -> str:
+    """sha256 of a bundled mesh or texture file (cached: these files do not change during a run)."""
+    return sha256_file(Path(path))
+
+
+def asset_name(path: str) -> str:
+    """Content-addressed name of a mesh or texture file inside ``_assets/``."""
+    return f"{source_sha256(path)[:12]}_{Path(path).name}"
+
+
+def scene_xml(
+    spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: dict
+) -> tuple[str, dict[str, str]]:
+    """MJCF of a settled scene, with mesh and texture files referenced inside ``../_assets/``.
+
+    Free bodies are moved to their settled poses and keyframe 0 ``settled`` holds the full qpos and
+    ctrl. ``objects`` maps body name -> qpos address. Returns (xml text, {asset file name: source path}).
+    """
+    for name, adr in objects.items():
+        body = spec.body(name)
+        body.pos = qpos[adr : adr + 3]
+        body.quat = qpos[adr + 3 : adr + 7]
+    for key in list(spec.keys):
+        spec.delete(key)
+    spec.add_key(name="settled", qpos=qpos, ctrl=ctrl)
+    root = ET.fromstring(spec.to_xml())
+    needed: dict[str, str] = {}
+    for element in root.iter():
+        if element.tag in ("mesh", "texture", "hfield", "skin") and element.get("file"):
+            source = element.get("file")
+            name = asset_name(source)
+            needed[name] = source
+            element.set("file", name)
+            element.attrib.pop("content_type", None)
+    # to_xml() prints 6 significant digits (5 um at the table's height): write the settled state in full.
+    exact = {name: (qpos[adr : adr + 3], qpos[adr + 3 : adr + 7]) for name, adr in objects.items()}
+    for element in root.iter("body"):
+        if element.get("name") in exact:
+            pos, quat = exact[element.get("name")]
+            element.set("pos", _floats(pos))
+            element.set("quat", _floats(quat))
+    cams = {c.name: c for c in spec.cameras}
+    for element in root.iter("camera"):
+        cam = cams.get(element.get("name"))
+        if cam is not None:
+            element.set("pos", _floats(cam.pos))
+            element.set("quat", _floats(cam.quat))
+    lights = {light.name: light for light in spec.lights}
+    for element in root.iter("light"):
+        light = lights.get(element.get("name"))
+        if light is not None:
+            element.set("pos", _floats(light.pos))
+            element.set("dir", _floats(light.dir))
+            element.set("diffuse", _floats(light.diffuse))
+    for key in root.iter("key"):
+        key.set("qpos", _floats(qpos))
+        key.set("ctrl", _floats(ctrl))
+    compiler = root.find("compiler")
+    if compiler is None:
+        compiler = ET.SubElement(root, "compiler")
+        root.remove(compiler)
+        root.insert(0, compiler)
+    compiler.set("meshdir", f"../{ASSETS}/")
+    compiler.set("texturedir", f"../{ASSETS}/")
+    ET.indent(root)
+    return ET.tostring(root, encoding="unicode") + "\n", needed
+
+
+def _floats(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def atomic_write(path: Path, data: bytes | str) -> None:
+    """Write a file so that readers see the old content or the new one, never a part."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "wb") as f:
+        f.write(data.encode() if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class StoreError(ValueError):
+    """The output directory cannot take this batch; the message names it and what to do."""
+
+
+@dataclass
+class ResumeState:
+    """Where a batch stands: the next proposal index, scenes stored, rejections by label."""
+
+    next_index: int = 0
+    accepted: int = 0
+    rejections: Counter = field(default_factory=Counter)
+
+
+class BatchStore:
+    """Writer of one batch directory."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    def open(self, pipeline_yaml: str) -> ResumeState:
+        """Start a new batch, or pick up a killed one of the same recipe exactly where it stopped.
+
+        Everything after the last complete commit is undone: temporary directories and files, a
+        torn last line of the index or rejection log, a scene directory whose index row was never
+        written. Since every stage is a pure function of its proposal, redoing that work gives the
+        same bytes as an uninterrupted run.
+        """
+        root = self.root
+        if root.exists() and not root.is_dir():
+            raise StoreError(f"--out {root}: is a file; choose a directory")
+        if not root.exists() or not any(root.iterdir()):
+            root.mkdir(parents=True, exist_ok=True)
+            (root / ASSETS).mkdir(exist_ok=True)
+            for log in (INDEX, REJECTIONS):  # present from the start, empty or not
+                (root / log).touch()
+            atomic_write(root / "pipeline.yaml", pipeline_yaml)
+            return ResumeState()
+        recipe = root / "pipeline.yaml"
+        if not recipe.is_file():
+            raise StoreError(
+                f"--out {root}: already exists and is not a scenegen batch; choose a new directory"
+            )
+        if recipe.read_text() != pipeline_yaml:
+            raise StoreError(
+                f"--out {root}: holds a batch of another recipe or overrides; rerun the same command to "
+                "resume it, or choose a new directory"
+            )
+        for leftover in [*root.glob(".tmp_*"), *root.glob(".*.tmp*"), *(root / ASSETS).glob(".*.tmp*")]:
+            shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
+        (root / ASSETS).mkdir(exist_ok=True)
+        index = _recover_jsonl(root / INDEX)
+        rejections = _recover_jsonl(root / REJECTIONS)
+        indexed = {row["scene_id"] for row in index}
+        for entry in root.iterdir():
+            if entry.is_dir() and entry.name.startswith("scene_") and entry.name not in indexed:
+                shutil.rmtree(entry)
+        last = max((row["proposal_index"] for row in [*index, *rejections]), default=-1)
+        return ResumeState(last + 1, len(index), Counter(row["label"] for row in rejections))
+
+    def _ensure_assets(self, needed: dict[str, str]) -> None:
+        for name, source in needed.items():
+            dest = self.root / ASSETS / name
+            if not dest.exists():
+                tmp = dest.with_name(f".{name}.tmp")
+                shutil.copyfile(source, tmp)
+                os.replace(tmp, dest)
+
+    def commit_scene(
+        self, record: SceneRecord, xml: str, needed: dict[str, str], images: dict[str, bytes]
+    ) -> SceneRecord:
+        """Write one scene atomically and append its index row; returns the record with file hashes."""
+        self._ensure_assets(needed)
+        final = self.root / record.scene_id
+        tmp = self.root / f".tmp_{record.scene_id}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        (tmp / "scene.xml").write_text(xml)
+        files = {"scene.xml": sha256_file(tmp / "scene.xml")}
+        for name, data in sorted(images.items()):
+            (tmp / name).write_bytes(data)
+            files[name] = hashlib.sha256(data).hexdigest()
+        files.update({f"../{ASSETS}/{n}": source_sha256(src) for n, src in sorted(needed.items())})
+        record = record.model_copy(update={"files": files})
+        text = record.model_dump_json(indent=1) + "\n"
+        (tmp / "scene.json").write_text(text)
+        os.replace(tmp, final)
+        self._append(
+            INDEX,
+            {
+                "scene_id": record.scene_id,
+                "proposal_index": record.proposal_index,
+                "target": record.target,
+                "n_objects": len(record.objects),
+                "tags": sorted(t for t, v in record.tags.items() if v.holds),
+                "scene_json_sha256": hashlib.sha256(text.encode()).hexdigest(),
+            },
+        )
+        return record
+
+    def log_rejection(self, rejection: Rejection) -> None:
+        self._append(REJECTIONS, rejection.model_dump(mode="json"))
+
+    def _append(self, name: str, row: dict) -> None:
+        with open(self.root / name, "a") as f:
+            f.write(json.dumps(row, sort_keys=True) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def _recover_jsonl(path: Path) -> list[dict]:
+    """Rows of an append-only log, cutting a torn last line (a write killed midway) off the file."""
+    if not path.exists():
+        return []
+    data = path.read_bytes()
+    keep = data[: data.rfind(b"\n") + 1]
+    if keep != data:
+        atomic_write(path, keep)
+    return [json.loads(line) for line in keep.decode().splitlines() if line.strip()]
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def measure_stored_scene(scene_dir: Path, catalog=None, settings=None) -> dict:
+    """Recompute every tag of a stored scene from its files alone: scene.xml at its keyframe (the
+    settled state) and the placements, lighting and main camera in scene.json. ``settings``: the
+    batch recipe's thresholds (``PipelineConfig.tags``; default the defaults). Returns tag -> TagValue,
+    to compare with the tags the pipeline recorded."""
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.settle.physics import contact_configuration
+    from scenegen.tags.predicates import TagContext, measure_tags
+
+    scene_dir = Path(scene_dir)
+    record = SceneRecord.model_validate_json((scene_dir / "scene.json").read_text())
+    model = mujoco.MjModel.from_xml_path(str(scene_dir / "scene.xml"))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    mujoco.mj_forward(model, data)
+    names = [o.name for o in record.objects]
+    context = TagContext.of_scene(
+        model,
+        data,
+        catalog or load_catalog(),
+        record.target,
+        record.objects,
+        record.furniture,
+        record.lighting,
+        record.cameras[0]["position"],
+        contact_configuration(model, data.qpos, names),
+    )
+    return measure_tags(context, settings)
