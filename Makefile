@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism sweep clean
+.PHONY: setup demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env sweep clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,9 @@ bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and
 
 bench-null: setup  ## 2,000 null-condition scenes of the generator against the held-out reference (benchmarks/null_condition.py)
 	$(BIN)/python benchmarks/null_condition.py
+
+bench-env: setup  ## environment reset and step costs, with and without a camera (benchmarks/env_step.py)
+	$(BIN)/python benchmarks/env_step.py
 
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py

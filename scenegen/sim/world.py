@@ -78,9 +78,15 @@ def _robosuite_xml() -> str:
     return world.get_xml()
 
 
-@functools.lru_cache(maxsize=1)
-def _base_spec() -> mujoco.MjSpec:
-    spec = mujoco.MjSpec.from_string(_robosuite_xml())
+def robot_world_spec(robosuite_xml: str, hold: bool = True) -> mujoco.MjSpec:
+    """The robot-and-table world of a robosuite model XML with scenegen's solver options.
+
+    ``hold``: the arm's torque motors become position servos with gravity compensation on every
+    robot body, so a stored scene keeps its pose under passive simulation (settling, stored
+    scenes). Without it the robot keeps robosuite's torque actuators and no compensation, as
+    robosuite's controllers expect (scenegen/env/).
+    """
+    spec = mujoco.MjSpec.from_string(robosuite_xml)
     spec.option.timestep = TIMESTEP
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
@@ -88,6 +94,17 @@ def _base_spec() -> mujoco.MjSpec:
     # Convex-convex collisions return a single contact point unless multiccd is on, and objects
     # resting on one point rock instead of settling.
     spec.option.enableflags |= mujoco.mjtEnableBit.mjENBL_MULTICCD
+    if hold:
+        _hold_robot(spec)
+    for light in list(spec.lights):  # the scene's own lighting replaces robosuite's
+        spec.delete(light)
+    for cam in list(spec.cameras):
+        if not cam.name.startswith(ROBOT_PREFIXES):  # keep the wrist camera
+            spec.delete(cam)
+    return spec
+
+
+def _hold_robot(spec: mujoco.MjSpec) -> None:
     for body in spec.bodies:
         if body.name.startswith(ROBOT_PREFIXES):
             body.gravcomp = 1.0
@@ -99,16 +116,15 @@ def _base_spec() -> mujoco.MjSpec:
         act.forcerange = torque_limit
         act.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         act.ctrlrange = spec.joint(act.target).range
-    for light in list(spec.lights):  # the scene's own lighting replaces robosuite's
-        spec.delete(light)
-    for cam in list(spec.cameras):
-        if not cam.name.startswith(ROBOT_PREFIXES):  # keep the wrist camera
-            spec.delete(cam)
-    return spec
+
+
+@functools.lru_cache(maxsize=1)
+def _base_spec() -> mujoco.MjSpec:
+    return robot_world_spec(_robosuite_xml(), hold=True)
 
 
 def robot_spec() -> mujoco.MjSpec:
-    """A fresh copy of the robot-and-table world with nothing else in it."""
+    """A fresh copy of the robot-and-table world with nothing else in it (robot held)."""
     return _base_spec().copy()
 
 
@@ -118,12 +134,15 @@ def build_world(
     furniture: Sequence[FurniturePlacement] = (),
     lighting: Lighting | None = None,
     cameras: Sequence[Camera] = (),
+    base: mujoco.MjSpec | None = None,
 ) -> mujoco.MjSpec:
     """A spec of the full scene; objects are free bodies named as their placements, at their poses.
 
-    Call :func:`initial_state` on the compiled model for the qpos/ctrl of the robot at its pose.
+    ``base``: the robot-and-table world to furnish (default: :func:`robot_spec`, the held robot;
+    it is modified in place). Call :func:`initial_state` on the compiled model for the qpos/ctrl
+    of the held robot at its pose.
     """
-    spec = robot_spec()
+    spec = robot_spec() if base is None else base
     for piece in furniture:
         _add_furniture(spec, piece)
     # Every catalog mesh is declared, used or not, in catalog order: all scenes of a catalog then share

@@ -1,0 +1,197 @@
+"""A robosuite environment that resets into a stored or reference scene (:class:`SceneEnv`).
+
+The model is rebuilt from the scene's description through the project's world builder
+(``sim.world.build_world``), on top of the robot-and-table model of this environment's own robosuite
+robot, with robosuite's torque actuators and no gravity compensation (``hold=False``): the stored
+scene.xml holds its arm with position servos and gravity compensation for settling, which robosuite's
+controllers (they write torques and compensate gravity themselves) must not meet. Body and joint names
+are robosuite's (``robot0_*``, ``gripper0_right_*``), so its robot classes and controllers work
+unchanged; the sim is handed to robosuite through its own hook, ``_initialize_sim``.
+
+Reset puts the objects at their settled poses and the robot at the scene's initial pose (fingers open
+as when the scene settled), zero velocities. Observations are robosuite's robot observations
+(``robot0_eef_pos``, ``robot0_eef_quat``, ``robot0_gripper_qpos``, ``robot0_joint_pos``, ...) plus,
+for each requested camera of the scene, ``<cam>_image`` (H, W, 3) uint8, ``<cam>_depth`` (H, W, 1)
+float32 metres along the optical axis (0: no return) and ``<cam>_segmentation`` (H, W, 1) int32
+instance ids as in scene.json, rendered by the project's renderer under the scene's lights, top row
+first; and ``target_id``, the target's instance id.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+
+from scenegen.assets.catalog import Catalog, load_catalog
+from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
+from scenegen.env.scenes import EnvScene
+from scenegen.render.offscreen import SceneRenderer
+from scenegen.sim import world
+
+DEFAULT_CONTROLLER = "BASIC"  # robosuite's composite controller: OSC_POSE arm + gripper, 7-D action
+CONTROL_FREQ = 20  # Hz: one action per 50 ms, 25 physics steps of 2 ms
+FINGER_OPEN = 0.04  # m: finger joint opening of a settled scene (world.GRIPPER_OPEN)
+
+
+def _robosuite():
+    world._quiet_robosuite()
+    from robosuite.controllers import load_composite_controller_config
+    from robosuite.environments.manipulation.manipulation_env import ManipulationEnv
+    from robosuite.models.arenas import TableArena
+    from robosuite.models.tasks import ManipulationTask
+    from robosuite.utils.binding_utils import MjSim
+
+    return ManipulationEnv, TableArena, ManipulationTask, MjSim, load_composite_controller_config
+
+
+ManipulationEnv, TableArena, ManipulationTask, MjSim, load_composite_controller_config = _robosuite()
+
+
+class SceneEnv(ManipulationEnv):
+    """robosuite's Panda on the scene's table, reset into :class:`EnvScene` values.
+
+    ``scene``: the first scene (``reset_to`` switches); ``controller_config``: a robosuite composite
+    controller config (default: ``load_composite_controller_config(controller="BASIC")``, OSC_POSE
+    arm with delta actions + gripper); ``cameras``: scene camera names to observe (default none: no
+    rendering), at ``camera_size`` (width, height) pixels.
+    """
+
+    def __init__(
+        self,
+        scene: EnvScene,
+        controller_config: dict | None = None,
+        cameras: Sequence[str] = (),
+        camera_size: tuple[int, int] = (128, 128),
+        horizon: int = 400,
+        catalog: Catalog | None = None,
+        seed: int | None = None,
+    ):
+        self.scene = scene
+        self.catalog = catalog or load_catalog()
+        self.cameras = tuple(cameras)
+        self.camera_size = tuple(camera_size)
+        self._robot_spec: mujoco.MjSpec | None = None
+        self._renderer: SceneRenderer | None = None
+        self._check_cameras(scene)
+        super().__init__(
+            robots="Panda",
+            controller_configs=controller_config
+            or load_composite_controller_config(controller=DEFAULT_CONTROLLER),
+            initialization_noise=None,
+            use_camera_obs=False,  # camera frames come from the project's renderer, below
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            renderer="mujoco",  # no robosuite viewer: frames come from SceneRenderer
+            render_camera=None,
+            control_freq=CONTROL_FREQ,
+            horizon=horizon,
+            ignore_done=False,
+            hard_reset=True,
+            seed=seed,
+        )
+
+    # ------------------------------------------------------------------ scenes
+    def _check_cameras(self, scene: EnvScene) -> None:
+        names = {c.name for c in scene.cameras}
+        missing = [c for c in self.cameras if c not in names]
+        if missing:
+            raise ValueError(
+                f"cameras {missing}: scene {scene.scene_id} has only {sorted(names)}; pick from those"
+            )
+
+    def reset_to(self, scene: EnvScene) -> OrderedDict:
+        """Reset into ``scene``: a new model, objects settled, robot at the scene's initial pose."""
+        self._check_cameras(scene)
+        self.scene = scene
+        return self.reset()
+
+    # ------------------------------------------------------------------ robosuite hooks
+    def _load_model(self):
+        if self._robot_spec is None:  # robosuite's robot and table, loaded once per environment
+            super()._load_model()
+            robot = self.robots[0].robot_model
+            robot.set_base_xpos(robot.base_xpos_offset["table"](TABLE_SIZE[0]))
+            arena = TableArena(table_full_size=TABLE_SIZE, table_offset=(0, 0, TABLE_TOP_Z))
+            arena.set_origin([0, 0, 0])
+            self.model = ManipulationTask(mujoco_arena=arena, mujoco_robots=[robot])
+            self._robot_spec = world.robot_world_spec(self.model.get_xml(), hold=False)
+
+    def _initialize_sim(self, xml_string=None):
+        scene = self.scene
+        spec = world.build_world(
+            self.catalog,
+            scene.objects,
+            scene.furniture,
+            scene.lighting,
+            scene.cameras,
+            base=self._robot_spec.copy(),
+        )
+        self.sim = MjSim(spec.compile())
+        self.sim.forward()
+        self.initialize_time(self.control_freq)
+
+    def _reset_internal(self):
+        robot = self.robots[0]
+        robot.init_qpos = np.asarray(self.scene.robot_pose, dtype=float)
+        super()._reset_internal()
+        model, data = self.sim.model._model, self.sim.data._data
+        for obj in self.scene.objects:
+            adr = model.joint(f"{obj.name}_joint").qposadr[0]
+            data.qpos[adr : adr + 3] = obj.position
+            data.qpos[adr + 3 : adr + 7] = obj.quat
+        for j in range(model.njnt):
+            name = model.joint(j).name
+            if name.startswith("gripper0_") and name.endswith(("finger_joint1", "finger_joint2")):
+                data.qpos[model.jnt_qposadr[j]] = FINGER_OPEN if name.endswith("1") else -FINGER_OPEN
+        data.qvel[:] = 0.0
+        data.act[:] = 0.0
+        data.ctrl[:] = 0.0
+        self.sim.forward()
+
+    def _setup_references(self):
+        super()._setup_references()
+        model = self.sim.model._model
+        self.target_body_id = model.body(self.scene.target).id
+
+    def _get_observations(self, force_update=False):
+        obs = super()._get_observations(force_update=force_update)
+        if self.cameras:
+            obs.update(self.camera_observations())
+        obs["target_id"] = np.array([self.scene.target_id], dtype=np.int32)
+        return obs
+
+    def camera_observations(self) -> dict[str, np.ndarray]:
+        """``<cam>_image``, ``<cam>_depth``, ``<cam>_segmentation`` of each observed camera, now."""
+        if self._renderer is None:  # one GL context per environment, made on first use
+            self._renderer = SceneRenderer()
+        model, data = self.sim.model._model, self.sim.data._data
+        frames = self._renderer.render(
+            model, data, self.cameras, self.scene.segmentation, [self.camera_size] * len(self.cameras)
+        )
+        out = {}
+        for name, f in zip(self.cameras, frames, strict=True):
+            out[f"{name}_image"] = f.rgb
+            out[f"{name}_depth"] = f.depth[..., None]
+            out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]
+        return out
+
+    def reward(self, action=None) -> float:
+        """No task here: 0. The recovery task (scenegen/policy/) defines reward and success."""
+        return 0.0
+
+    def _check_success(self) -> bool:
+        return False
+
+    def target_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The target's position (m) and wxyz quaternion, now."""
+        data = self.sim.data._data
+        return data.xpos[self.target_body_id].copy(), data.xquat[self.target_body_id].copy()
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close()
