@@ -9,7 +9,7 @@ export MUJOCO_GL ?= egl
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[dev,export]'
 	touch $@
 
 setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)

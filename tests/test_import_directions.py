@@ -91,6 +91,7 @@ FAMILIES = (
         ("scenegen.data", "scenegen.audit", "scenegen.assets.authoring"),
     ),
     ("env", ("scenegen.env",)),
+    ("export", ("scenegen.export",)),
     ("policy", ("scenegen.policy",)),
     ("experiment", ("scenegen.experiment",)),
     ("cli", ("scenegen.cli",)),

@@ -1,8 +1,8 @@
 """Command line: ``scenegen generate`` and friends. ``scenegen --help`` lists the commands.
 
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
-(generate, show), ``generator.py`` (train, sweep) and ``data.py`` (reference, coverage, import-real,
-audit, manifest add); handlers call library functions with typed arguments.
+(generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
+audit, manifest add) and ``export.py`` (export); handlers call library functions with typed arguments.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import data, generator, scenes
+from scenegen.cli import data, export, generator, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -43,6 +43,7 @@ def _parser() -> argparse.ArgumentParser:
     scenes.add_commands(sub)
     data.add_commands(sub)
     generator.add_commands(sub)
+    export.add_commands(sub)
     return parser
 
 
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
-    no_gl = args.command in ("train", "sweep", "audit", "manifest") or (
+    no_gl = args.command in ("train", "sweep", "audit", "manifest", "export") or (
         args.command == "generate" and args.no_render
     )
     if no_gl and "mujoco" not in sys.modules:

@@ -1,0 +1,136 @@
+"""Stored scenes as WebDataset tar shards (``scenegen export BATCH --format webdataset --out DIR``).
+
+One sample per accepted scene, its key the scene id: ``scene.json``, ``scene.xml`` and every image the
+scene stored (``<cam>_rgb.png``, ``<cam>_depth.png``, ``<cam>_seg.png``), byte for byte. The batch's
+meshes and textures (its ``_assets/`` folder, referenced by every scene.xml as ``../_assets/``) go
+once into ``assets-000000.tar``, one sample per file. A scene is rebuilt from the shards alone by
+writing its ``scene.xml`` into ``<dir>/<scene_id>/`` and the asset samples into ``<dir>/_assets/``
+(:func:`rebuild_scene`).
+
+``export.json`` makes the export self-describing: its format, the source batch (path and the
+checksum root of its manifest), counts, and the sha256 of every shard. The export is written into a
+temporary folder beside ``out`` and renamed into place at the end: an interrupted export leaves no
+``out``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tarfile
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from scenegen import __version__
+from scenegen.core.files import sha256_file
+from scenegen.store.batch import ASSETS, INDEX, read_jsonl
+
+EXPORT_FILE = "export.json"
+SCENES_PER_SHARD = 100
+SCENE_FILES = ("scene.json", "scene.xml")
+
+
+class ExportError(ValueError):
+    """An export that cannot be made; the message names the file and what to do."""
+
+
+def _scene_sample(scene_dir: Path) -> dict:
+    sample = {"__key__": scene_dir.name}
+    for path in sorted(scene_dir.iterdir()):
+        if path.is_file() and (path.name in SCENE_FILES or path.suffix == ".png"):
+            sample[path.name] = path.read_bytes()
+    missing = [name for name in SCENE_FILES if name not in sample]
+    if missing:
+        raise ExportError(f"{scene_dir}: missing {', '.join(missing)}; is the batch complete?")
+    return sample
+
+
+def _asset_samples(assets: Path) -> Iterator[dict]:
+    for path in sorted(assets.iterdir()):
+        if path.name.count(".") != 1:  # WebDataset splits key and extension at the first dot
+            raise ExportError(f"{path}: an asset name needs exactly one dot (key.ext) to be a sample")
+        yield {"__key__": path.stem, path.suffix[1:]: path.read_bytes()}
+
+
+def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER_SHARD) -> dict:
+    """Write ``batch``'s accepted scenes as shards into ``out`` (which must not exist or be empty);
+    returns the export description (what ``export.json`` holds)."""
+    import webdataset as wds
+
+    batch, out = Path(batch), Path(out)
+    if not (batch / INDEX).is_file():
+        raise ExportError(f"{batch}: no {INDEX}; give a batch directory written by `scenegen generate`")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ExportError(f"{out}: exists and is not an empty folder; choose a new --out")
+    if scenes_per_shard < 1:
+        raise ExportError(f"scenes_per_shard {scenes_per_shard}: must be at least 1")
+    rows = read_jsonl(batch / INDEX)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp"))
+    try:
+        with wds.ShardWriter(str(tmp / "scenes-%06d.tar"), maxcount=scenes_per_shard, verbose=0) as sink:
+            for row in rows:
+                sink.write(_scene_sample(batch / row["scene_id"]))
+        assets = 0
+        if (batch / ASSETS).is_dir():
+            with wds.TarWriter(str(tmp / "assets-000000.tar")) as sink:
+                for sample in _asset_samples(batch / ASSETS):
+                    sink.write(sample)
+                    assets += 1
+        description = {
+            "format": "webdataset",
+            "scenegen": __version__,
+            "webdataset": wds.__version__ if hasattr(wds, "__version__") else _version("webdataset"),
+            "source": {"batch": str(batch.resolve()), "checksum_root": _checksum_root(batch)},
+            "counts": {"scenes": len(rows), "assets": assets},
+            "scene_ids": [row["scene_id"] for row in rows],
+            "shards": {p.name: sha256_file(p) for p in sorted(tmp.glob("*.tar"))},
+        }
+        (tmp / EXPORT_FILE).write_text(json.dumps(description, indent=1) + "\n")
+        if out.exists():
+            out.rmdir()
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return description
+
+
+def _version(package: str) -> str:
+    import importlib.metadata
+
+    return importlib.metadata.version(package)
+
+
+def _checksum_root(batch: Path) -> str | None:
+    """The batch manifest's checksum root (None for a batch without a manifest)."""
+    from scenegen.manifest import read_manifest
+
+    if not (batch / "manifest.yaml").is_file():
+        return None
+    source = read_manifest(batch / "manifest.yaml").sources[0]
+    return getattr(source.checksums, "root", None)
+
+
+def rebuild_scene(export: Path, scene_id: str, into: Path) -> Path:
+    """Write ``scene_id``'s files and the assets from the shards of ``export`` under ``into``; returns
+    the scene folder (its scene.xml loads with ``mujoco.MjModel.from_xml_path``)."""
+    export, into = Path(export), Path(into)
+    (into / ASSETS).mkdir(parents=True, exist_ok=True)
+    with tarfile.open(export / "assets-000000.tar") as tar:
+        for member in tar.getmembers():
+            data = tar.extractfile(member)
+            if data is not None:
+                (into / ASSETS / Path(member.name).name).write_bytes(data.read())
+    for shard in sorted(export.glob("scenes-*.tar")):
+        with tarfile.open(shard) as tar:
+            members = [m for m in tar.getmembers() if m.name.startswith(f"{scene_id}.")]
+            if not members:
+                continue
+            folder = into / scene_id
+            folder.mkdir(parents=True, exist_ok=True)
+            for member in members:
+                (folder / member.name[len(scene_id) + 1 :]).write_bytes(tar.extractfile(member).read())
+            return folder
+    raise ExportError(f"{export}: no scene {scene_id!r} in its shards")
