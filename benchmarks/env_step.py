@@ -1,5 +1,6 @@
-"""Environment costs: reset into a new scene, a control step without and with camera observations,
-each against plain MuJoCo doing the same physics in the same run (the baseline).
+"""Environment and export costs: reset into a new scene, a control step without and with camera
+observations, each against plain MuJoCo doing the same physics in the same run (the baseline); and
+the WebDataset export of the batch (scenes/s, MB/s) against copying its files (the baseline).
 
     .venv/bin/python benchmarks/env_step.py [--batch runs/demo] [--scenes 6] [--steps 100]
         [--camera-size 128 128]
@@ -74,6 +75,28 @@ def measure(scenes, steps: int, camera_size: tuple[int, int]) -> dict:
     }
 
 
+def measure_export(batch: Path) -> dict:
+    """WebDataset export of ``batch`` against a plain copy of the same files."""
+    import shutil
+
+    from scenegen.export.scene_shards import export_webdataset
+
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        description = export_webdataset(batch, Path(tmp) / "shards")
+        export_s = time.perf_counter() - start
+        size = sum(p.stat().st_size for p in (Path(tmp) / "shards").glob("*.tar"))
+        start = time.perf_counter()
+        shutil.copytree(batch, Path(tmp) / "copy")
+        copy_s = time.perf_counter() - start
+    scenes = description["counts"]["scenes"]
+    return {
+        "export_scenes_per_s": round(scenes / export_s, 2),
+        "export_mb_per_s": round(size / 1e6 / export_s, 1),
+        "export_over_copy": round(export_s / copy_s, 2),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=Path, help="a stored batch (default: generate 6 scenes)")
@@ -91,6 +114,7 @@ def main() -> None:
             run_batch(config, batch, workers=1, progress=False)
         scenes = batch_scenes(batch)[: args.scenes]
         result = measure(scenes, args.steps, tuple(args.camera_size))
+        result |= measure_export(batch)
     result |= {"scenes": len(scenes), "machine": platform.processor() or platform.machine()}
     width = max(len(k) for k in result)
     for key, value in result.items():
