@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env sweep clean
+.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env sweep clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,16 +14,28 @@ $(BIN)/scenegen: pyproject.toml
 
 setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)
 
+# lerobot (the LeRobot exporter) cannot be a pip extra: it declares torch<2.11 and diffusers<0.36, so
+# it goes in with --no-deps beside the tested versions of what its dataset code imports
+# (constraints/exporters.txt); `pip check` may then list only lerobot's own declarations.
+$(VENV)/.exporters: constraints/exporters.txt $(BIN)/scenegen
+	$(BIN)/pip install --quiet -c constraints/exporters.txt datasets av accelerate torchvision
+	$(BIN)/pip install --quiet -c constraints/exporters.txt --no-deps lerobot
+	! $(BIN)/pip check | grep -v '^lerobot 0\.4\.4 '
+	$(BIN)/python -c "from scenegen.export.lerobot import lerobot_version; print('lerobot', lerobot_version())"
+	touch $@
+
+install-exporters: $(VENV)/.exporters  ## the LeRobot exporter (lerobot 0.4.4, dataset format v3.0) beside the project's pins
+
 demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), its contact sheet and audit
 	rm -rf runs/demo
 	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo --workers 2
 	$(BIN)/scenegen show runs/demo
 	$(BIN)/scenegen audit runs/demo/manifest.yaml
 
-test: setup  ## the whole test suite, as CI runs it
+test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included)
 	$(BIN)/python -m pytest -q
 
-test-fast: setup  ## everything but the slow end-to-end tests
+test-fast: setup install-exporters  ## everything but the slow end-to-end tests
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)

@@ -28,7 +28,7 @@ import numpy as np
 from scenegen.assets.catalog import Catalog, load_catalog
 from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
 from scenegen.env.scenes import EnvScene
-from scenegen.render.offscreen import SceneRenderer
+from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
 from scenegen.sim import world
 
 DEFAULT_CONTROLLER = "BASIC"  # robosuite's composite controller: OSC_POSE arm + gripper, 7-D action
@@ -68,11 +68,15 @@ class SceneEnv(ManipulationEnv):
         horizon: int = 400,
         catalog: Catalog | None = None,
         seed: int | None = None,
+        render_each_step: bool = True,
     ):
         self.scene = scene
+        self.render_each_step = render_each_step
         self.catalog = catalog or load_catalog()
         self.cameras = tuple(cameras)
         self.camera_size = tuple(camera_size)
+        if not (0 < self.camera_size[0] <= MAX_SIZE[0] and 0 < self.camera_size[1] <= MAX_SIZE[1]):
+            raise ValueError(f"camera_size {self.camera_size}: must be positive and at most {MAX_SIZE}")
         self._robot_spec: mujoco.MjSpec | None = None
         self._renderer: SceneRenderer | None = None
         self._check_cameras(scene)
@@ -158,7 +162,7 @@ class SceneEnv(ManipulationEnv):
 
     def _get_observations(self, force_update=False):
         obs = super()._get_observations(force_update=force_update)
-        if self.cameras:
+        if self.cameras and self.render_each_step:
             obs.update(self.camera_observations())
         obs["target_id"] = np.array([self.scene.target_id], dtype=np.int32)
         return obs
