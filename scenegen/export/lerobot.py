@@ -60,6 +60,7 @@ from scenegen.env.episodes import Episode, read_episode
 
 INSTALL_HINT = "make install-exporters"
 FORMAT_VERSION = "v3.0"
+EXPORT_FILE = "meta/scenegen_export.json"  # source episodes and their checksums, counts
 SIDECAR = "meta/scenegen_episodes.jsonl"
 STATE_KEYS = (("robot0_joint_pos", "robot_qpos"), ("robot0_gripper_qpos", "gripper_qpos"))
 
@@ -257,6 +258,28 @@ def _remove_empty_dirs(root: Path) -> None:
             os.rmdir(folder)
 
 
+def _description(folders: Sequence[Path], written: dict, version: str) -> dict:
+    """What ``meta/scenegen_export.json`` holds: the export's format, counts and its sources' checksums."""
+    from scenegen import __version__
+    from scenegen.core.files import sha256_file
+
+    return {
+        "format": "lerobot",
+        "format_version": written["codebase_version"],
+        "lerobot": version,
+        "scenegen": __version__,
+        "counts": {"episodes": written["total_episodes"], "frames": written["total_frames"]},
+        "source": [
+            {
+                "folder": str(Path(f).resolve()),
+                "episode.json": sha256_file(Path(f) / "episode.json"),
+                "arrays.npz": sha256_file(Path(f) / "arrays.npz"),
+            }
+            for f in folders
+        ],
+    }
+
+
 def export_lerobot(
     episode_folders: Sequence[Path],
     out: Path,
@@ -316,6 +339,7 @@ def export_lerobot(
         (root / SIDECAR).write_text("".join(lines))
         _remove_empty_dirs(root)  # lerobot leaves the emptied images/ staging folders behind
         written = json.loads((root / "meta" / "info.json").read_text())
+        (root / EXPORT_FILE).write_text(json.dumps(_description(folders, written, version), indent=1) + "\n")
         os.rename(root, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -17,6 +17,7 @@ import pytest
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # read back from the local folder only, never the Hub
 
+from scenegen.core.files import sha256_file  # noqa: E402
 from scenegen.env.episodes import EpisodeRecorder, write_episode  # noqa: E402
 from scenegen.env.scenes import batch_scenes  # noqa: E402
 from scenegen.export.lerobot import ExporterMissing, export_lerobot, task_string  # noqa: E402
@@ -136,6 +137,11 @@ def test_episode_metadata_is_kept(exported, episode_folders):
         task = f"scene {scene['scene_id']} from {scene['source']}, target {scene['target']}"
         assert back.meta.episodes[record["episode_index"]]["tasks"] == [task]
         assert task in back.meta.tasks.index
+    described = json.loads((out / "meta" / "scenegen_export.json").read_text())
+    assert described["counts"] == {"episodes": 2, "frames": 6} and described["format_version"] == "v3.0"
+    assert [s["arrays.npz"] for s in described["source"]] == [
+        sha256_file(f / "arrays.npz") for f in episode_folders
+    ]
 
 
 @needs_lerobot
