@@ -194,3 +194,19 @@ def source_scenes(
                 dataclasses.replace(s, origin=source.origin) for s in table_scenes(location, split, name)
             ]
     return scenes
+
+
+def proposal_scene(proposal, scene_id: str = "proposal", source: str = "hand-built") -> EnvScene:
+    """A scene of a proposal's placements as they are (not settled: place objects at rest, e.g. with
+    ``core.placement.snap_to_rest``); cameras default to the procedural proposer's."""
+    return EnvScene(
+        scene_id=scene_id,
+        origin="synthetic",
+        source=source,
+        target=proposal.target,
+        objects=tuple(proposal.objects),
+        furniture=tuple(proposal.furniture),
+        lighting=proposal.lighting,
+        cameras=tuple(proposal.cameras) or DEFAULT_CAMERAS,
+        robot_pose=tuple(proposal.condition.robot_pose),
+    )
