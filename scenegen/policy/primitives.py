@@ -11,6 +11,14 @@ parameters, and an executor, which moves the grip site through those parameters 
 - ``side_grasp``: horizontally, from the side with the most free space around the target (measured
   from the other objects' points), at a third of the target's height: for objects whose top is
   blocked (under a board) or too wide to span from above but graspable across the body.
+- ``toppled_grasp``: a body lying on its side, grasped across the body at half its lying height, at
+  the visible points' centroid along it (the mass leans to the wide end).
+- ``push_from_edge_then_grasp``: the closed hand pushes a target near a table edge 10 cm inward, low
+  on its body so it slides rather than tips; then a top grasp from a new observation.
+- ``pull_out_then_grasp``: the closed hand, horizontal, comes in low beside the target, round to its
+  far side, and drags it 15 cm towards the robot; then a top grasp from a new observation. Measured
+  on a can under the shelf's board: the hand reaches the board's front but pushes the can 2 cm away
+  instead of hooking it (work in progress, issue 19).
 
 ``PRIMITIVES`` maps a name to its :class:`Primitive`; ``version`` changes whenever a primitive's
 behaviour does (expert labels are cached by it).
@@ -165,3 +173,123 @@ def execute_side_grasp(env, params: dict, step=None) -> None:
     servo(env, [standoff[0], standoff[1], max(here[2], standoff[2] + 0.15)], rotation, OPEN, 100, step=step)
     servo(env, standoff, rotation, OPEN, max_steps=150, step=step)
     _grasp_and_lift(env, np.asarray(params["position"]), rotation, step)
+
+
+# ------------------------------------------------------------------------------------ toppled grasp
+def plan_toppled_grasp(view: TargetView) -> dict:
+    """A body lying on its side: fingers close across the body (the footprint's minor axis) at half
+    its lying height, at the points' centroid along the body (the mass leans to the wide end, not
+    the neck): no rim to pinch, and the body is narrower than the hand."""
+    t = view.target
+    major = np.array([np.cos(t.yaw), np.sin(t.yaw)])
+    minor = np.array([-major[1], major[0]])
+    along = (t.centroid[:2] - t.centre[:2]) @ major
+    point = t.centre[:2] + along * major
+    closing = minor if minor @ np.asarray(view.hand_closing) >= 0 else -minor
+    grasp_z = t.bottom_z + 0.5 * t.height
+    return {
+        "position": [float(point[0]), float(point[1]), float(grasp_z)],
+        "closing": [float(closing[0]), float(closing[1])],
+        "approach_z": float(t.top_z + APPROACH_HEIGHT),
+    }
+
+
+@primitive("toppled_grasp", version=1)(plan_toppled_grasp)
+def execute_toppled_grasp(env, params: dict, step=None) -> None:
+    execute_top_grasp(env, params, step)
+
+
+# ---------------------------------------------------------------------- push from the edge, then grasp
+TABLE_HALF = (0.4, 0.5)  # m: the table top's half extents around the origin (the robot's map)
+PUSH = 0.10  # m the target is pushed inward
+
+
+def plan_push_from_edge(view: TargetView) -> dict:
+    """A target close to a table edge: a top grasp there has the hand's outer finger over the edge and
+    the target tipping off when touched. Push it inward first: the closed hand comes down beside the
+    target on the edge side, a finger-width above the table, and pushes ``PUSH`` towards the table's
+    middle; then a top grasp from a new observation."""
+    t = view.target
+    x, y = t.centre[:2]
+    gaps = {  # distance to each edge the hand can work from (the robot stands behind x = -0.4)
+        (1.0, 0.0): TABLE_HALF[0] - x,
+        (0.0, 1.0): TABLE_HALF[1] - y,
+        (0.0, -1.0): TABLE_HALF[1] + y,
+    }
+    outward = np.asarray(min(gaps, key=gaps.get))
+    radius = 0.5 * t.extent[1]
+    start = t.centre[:2] + outward * (radius + 0.03)
+    end = start - outward * PUSH
+    z = t.bottom_z + min(0.015, 0.5 * t.height)  # low: a push high up a tall body tips it over
+    return {
+        "position": [float(end[0]), float(end[1]), float(z)],
+        "start": [float(start[0]), float(start[1]), float(z)],
+        "closing": [float(outward[1]), float(-outward[0])],  # fingers along the edge: a flat pusher
+    }
+
+
+@primitive("push_from_edge_then_grasp", version=1)(plan_push_from_edge)
+def execute_push_from_edge(env, params: dict, step=None) -> None:
+    rotation = down_grasp(np.asarray(params["closing"]))
+    start = np.asarray(params["start"])
+    servo(env, start + np.array([0, 0, 0.12]), rotation, CLOSE, max_steps=100, step=step)
+    servo(env, start, rotation, CLOSE, max_steps=60, speed=0.4, step=step)
+    servo(env, params["position"], rotation, CLOSE, max_steps=80, speed=0.3, step=step)
+    here, _ = grip_site(env)
+    servo(env, here + np.array([0, 0, 0.12]), rotation, OPEN, max_steps=40, step=step)
+    _regrasp(env, step)
+
+
+def _regrasp(env, step) -> None:
+    """Re-observe (a new decision point's frames) and top-grasp from there."""
+    from scenegen.policy.rollout import observe  # the rollout imports this module
+
+    _, view = observe(env)
+    if view is not None:
+        execute_top_grasp(env, plan_top_grasp(view), step)
+
+
+# --------------------------------------------------------------------------- pull out, then grasp
+def plan_pull_out(view: TargetView) -> dict:
+    """A target under an overhang or hemmed in by clutter: a hand from above meets the board or the
+    neighbours. The closed hand, held horizontally and pointing away from the robot (it is thinner
+    that way than upright: it fits under a shelf's board), comes in low beside the target on its
+    freer side, goes round to its far side and drags it ``PULL`` towards the robot (the open side);
+    then a top grasp from a new observation."""
+    t = view.target
+    centre = t.centre[:2]
+    towards_robot = np.asarray(view.robot_base) - centre
+    towards_robot /= np.linalg.norm(towards_robot)
+    side = np.array([-towards_robot[1], towards_robot[0]])
+    if _clearance(view, -side) > _clearance(view, side):
+        side = -side
+    radius = 0.5 * t.extent[1]
+    z = t.bottom_z + 0.03  # the horizontal hand's lower edge stays off the table
+    # come down well in front of the target (clear of an overhang's front edge), then in, low
+    entry = centre + towards_robot * (radius + 0.16) + side * (radius + 0.05)
+    beside = centre + side * (radius + 0.05) - towards_robot * (radius + 0.04)
+    behind = centre - towards_robot * (radius + 0.03)
+    end = behind + towards_robot * PULL
+    return {
+        "entry": [float(entry[0]), float(entry[1]), float(z)],
+        "beside": [float(beside[0]), float(beside[1]), float(z)],
+        "behind": [float(behind[0]), float(behind[1]), float(z)],
+        "position": [float(end[0]), float(end[1]), float(z)],
+        "pointing": [float(-towards_robot[0]), float(-towards_robot[1])],
+    }
+
+
+PULL = 0.15  # m the target is dragged towards the robot
+
+
+@primitive("pull_out_then_grasp", version=1)(plan_pull_out)
+def execute_pull_out(env, params: dict, step=None) -> None:
+    rotation = side_grasp(np.asarray(params["pointing"]))
+    entry = np.asarray(params["entry"])
+    here, _ = grip_site(env)
+    servo(env, [entry[0], entry[1], max(here[2], entry[2] + 0.15)], rotation, CLOSE, 100, step=step)
+    for key, speed in (("entry", 0.4), ("beside", 0.3), ("behind", 0.3), ("position", 0.3)):
+        servo(env, params[key], rotation, CLOSE, max_steps=80, speed=speed, step=step)
+    here, _ = grip_site(env)
+    servo(env, here + np.array([0, 0, 0.12]), rotation, OPEN, max_steps=40, step=step)
+    _regrasp(env, step)

@@ -95,3 +95,18 @@ def test_every_primitive_has_a_version_and_plans_from_the_view(env):
     for name, primitive in PRIMITIVES.items():
         params = primitive.plan(view)
         assert primitive.version >= 1 and len(params["position"]) == 3, name
+
+
+def test_a_toppled_can_is_lifted_by_the_grasp_across_its_lying_body(env):
+    can = place(catalog(), "can", "soda_can", 0.1, 0.0, pose=0, yaw=0.6)  # pose 0: lying on its side
+    env.reset_to(proposal_scene(proposal([can], lighting=LIGHT), "toppled_can"))
+    outcome, params = run_primitive(env, "toppled_grasp")
+    assert outcome.success, (outcome, params)
+
+
+def test_a_can_at_the_tables_edge_is_pushed_inward_then_lifted(env):
+    can = place(catalog(), "can", "soda_can", 0.1, 0.455)  # 1.2 cm from the +y edge (table half 0.5)
+    env.reset_to(proposal_scene(proposal([can], lighting=LIGHT), "edge_can"))
+    outcome, params = run_primitive(env, "push_from_edge_then_grasp")
+    assert params["start"][1] > params["position"][1]  # the push runs away from the +y edge
+    assert outcome.success, (outcome, params)
