@@ -32,24 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenegen.policy.motion import CLOSE, OPEN, down_grasp, grip_site, hold, servo, side_grasp
-from scenegen.policy.perception import TargetEstimate
+from scenegen.policy.observation import TargetView, observe
 
 MAX_GRASP_WIDTH = 0.07  # m: what the 8 cm hand spans with a margin for the estimate's error
 ROUND = 1.15  # a footprint whose extents differ by less than this ratio has no major axis
 APPROACH_HEIGHT = 0.10  # m above the target's top for a top grasp's approach
 LIFT = 0.15  # m the grip site rises after closing (the task asks 5 cm of the target)
 CLOSE_STEPS, HOLD_STEPS = 15, 30  # control steps to close the hand; to hold the lift (1.5 s at 20 Hz)
-
-
-@dataclass(frozen=True)
-class TargetView:
-    """What a planner may use. ``target``: the target as seen; ``others``: (N, 3) world points of the
-    other objects and furniture; ``robot_base``: (x, y) of the robot's base (it faces +x)."""
-
-    target: TargetEstimate
-    others: np.ndarray
-    robot_base: tuple[float, float] = (-0.56, 0.0)
-    hand_closing: tuple[float, float] = (0.0, 1.0)  # the fingers' closing axis now, (x, y) (proprioception)
 
 
 @dataclass(frozen=True)
@@ -242,8 +231,6 @@ def execute_push_from_edge(env, params: dict, step=None) -> None:
 
 def _regrasp(env, step) -> None:
     """Re-observe (a new decision point's frames) and top-grasp from there."""
-    from scenegen.policy.rollout import observe  # the rollout imports this module
-
     _, view = observe(env)
     if view is not None:
         execute_top_grasp(env, plan_top_grasp(view), step)
