@@ -12,8 +12,8 @@ from scenes import place, proposal
 from scenegen.assets.catalog import load_catalog
 from scenegen.core.layout import FURNITURE_HOME
 from scenegen.env.scenes import proposal_scene
-from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.observation import observe
+from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.rollout import run_primitive
 from scenegen.policy.task import LIFT_HEIGHT, RetrieveMonitor
 from scenegen.schema.scene import FurniturePlacement, Light, Lighting
