@@ -2,7 +2,8 @@
 
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
 (generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
-audit, manifest add) and ``export.py`` (export); handlers call library functions with typed arguments.
+audit, manifest add), ``export.py`` (export) and ``policy.py`` (label); handlers call library
+functions with typed arguments.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import data, export, generator, scenes
+from scenegen.cli import data, export, generator, policy, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -44,6 +45,7 @@ def _parser() -> argparse.ArgumentParser:
     data.add_commands(sub)
     generator.add_commands(sub)
     export.add_commands(sub)
+    policy.add_commands(sub)
     return parser
 
 

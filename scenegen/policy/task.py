@@ -30,7 +30,30 @@ class RetrieveOutcome:
     time: float = 0.0
     success_time: float | None = None
     robot_touched: bool = False
+    furniture_touched: bool = False  # the robot touched a piece of furniture
+    lowest: float = 0.0  # the target's lowest height relative to its settled one (m; < 0: it fell)
     events: list[str] = field(default_factory=list)
+
+    def failure(self) -> str:
+        """The failure event ('' on success), by the first rule that holds: ``pushed_off`` (the target
+        dropped 3 cm below where it rested), ``no_contact`` (the robot never touched it),
+        ``collision_furniture``, ``slip`` (lifted 1 cm or more, not held), ``timeout``, else
+        ``no_lift`` (touched, never lifted: a grasp that did not close on it)."""
+        if self.success:
+            return ""
+        if "target_not_seen" in self.events:
+            return "not_seen"
+        if self.lowest < -0.03:
+            return "pushed_off"
+        if not self.robot_touched:
+            return "no_contact"
+        if self.furniture_touched:
+            return "collision_furniture"
+        if self.lift >= 0.01:
+            return "slip"
+        if self.time >= TIME_LIMIT:
+            return "timeout"
+        return "no_lift"
 
 
 class RetrieveMonitor:
@@ -48,8 +71,10 @@ class RetrieveMonitor:
         env, out = self.env, self.outcome
         now = float(env.sim.data._data.time) - self.start
         lift = float(env.target_pose()[0][2]) - self.settled_z
-        out.time, out.lift = now, max(out.lift, lift)
-        out.robot_touched |= self._robot_touches_target()
+        out.time, out.lift, out.lowest = now, max(out.lift, lift), min(out.lowest, lift)
+        touched, furniture = self._robot_contacts()
+        out.robot_touched |= touched
+        out.furniture_touched |= furniture
         if lift >= self.lift_height:
             self._lifted_since = now if self._lifted_since is None else self._lifted_since
             if not out.success and now - self._lifted_since >= self.hold_time - 1e-9:
@@ -58,16 +83,21 @@ class RetrieveMonitor:
             self._lifted_since = None
         return out
 
-    def _robot_touches_target(self) -> bool:
+    def _robot_contacts(self) -> tuple[bool, bool]:
+        """Whether the robot touches the target, and whether it touches a piece of furniture, now."""
         model, data = self.env.sim.model._model, self.env.sim.data._data
         target = self.env.target_body_id
+        furniture = {f.name for f in self.env.scene.furniture}
+        touches_target = touches_furniture = False
         for c in data.contact[: data.ncon]:
-            a, b = model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]
-            if target in (a, b):
-                other = model.body(b if a == target else a).name
-                if other.startswith(("robot0_", "gripper0_")):
-                    return True
-        return False
+            names = (model.body(model.geom_bodyid[c.geom1]).name, model.body(model.geom_bodyid[c.geom2]).name)
+            robot = [n.startswith(("robot0_", "gripper0_")) for n in names]
+            if not any(robot):
+                continue
+            other = names[1] if robot[0] else names[0]
+            touches_target |= model.body(other).id == target
+            touches_furniture |= other in furniture
+        return touches_target, touches_furniture
 
     @property
     def timed_out(self) -> bool:

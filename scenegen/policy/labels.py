@@ -1,0 +1,211 @@
+"""Expert labels: every primitive executed from every scene's settled state, the outcome measured by
+the simulator (``scenegen label SCENES --out labels.parquet``).
+
+One row per (scene, primitive): the scene (id, source, origin, target category, the rare tags it
+holds, ``scene_sha256``), the primitive and its version, ``success``, ``lift`` (m), ``duration``
+(simulated s) and ``failure`` (the failure event, ``RetrieveOutcome.failure``). Scenes whose target is
+on the floor are left out (infeasible for a table-top arm). Rows are in (scene, primitive) order and
+hold no wall-clock data, so the same scenes give the same file whatever the worker count.
+
+Resumable and cached: every finished row is appended to ``<out>.rows.jsonl`` at once; a rerun (after a
+kill, or with more scenes or primitives) reuses every row whose (scene_sha256, primitive, version) it
+already holds, from that log or from an existing ``out``, and runs only the rest. ``out`` is written
+atomically at the end.
+"""
+
+from __future__ import annotations
+
+import atexit
+import hashlib
+import json
+import multiprocessing
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from scenegen.env.scenes import EnvScene, load_scenes
+from scenegen.policy.primitives import PRIMITIVES
+from scenegen.policy.task import feasible
+from scenegen.schema.condition import RARE_TAGS
+from scenegen.store.batch import _recover_jsonl
+
+CAMERAS = ("front", "side")  # what the planners observe
+CAMERA_SIZE = (320, 240)  # px: a 3 cm spoon covers enough pixels to be seen from the default cameras
+HORIZON = 3000  # control steps: longer than any primitive
+
+
+class LabelError(ValueError):
+    """Labelling that cannot start; the message names the input and what to do."""
+
+
+@dataclass(frozen=True)
+class Job:
+    scene: EnvScene
+    sha256: str
+    primitive: str
+    version: int
+
+    @property
+    def key(self) -> tuple[str, str, int]:
+        return (self.sha256, self.primitive, self.version)
+
+
+def scene_sha256(scene: EnvScene) -> str:
+    """A stored scene's scene.json sha256; a reference layout's, of its description as JSON."""
+    if scene.path is not None:
+        return hashlib.sha256((scene.path / "scene.json").read_bytes()).hexdigest()
+    described = {
+        "objects": [o.model_dump(mode="json") for o in scene.objects],
+        "furniture": [f.model_dump(mode="json") for f in scene.furniture],
+        "lighting": scene.lighting.model_dump(mode="json"),
+        "cameras": [c.model_dump(mode="json") for c in scene.cameras],
+        "robot_pose": list(scene.robot_pose),
+        "target": scene.target,
+    }
+    return hashlib.sha256(json.dumps(described, sort_keys=True).encode()).hexdigest()
+
+
+def _row(job: Job, outcome) -> dict:
+    scene = job.scene
+    category = next(o.category for o in scene.objects if o.name == scene.target)
+    return {
+        "scene_id": scene.scene_id,
+        "source": scene.source,
+        "origin": scene.origin,
+        "scene_sha256": job.sha256,
+        "target_category": category,
+        "tags": [t for t in RARE_TAGS if scene.tags.get(t)],
+        "primitive": job.primitive,
+        "primitive_version": job.version,
+        "success": bool(outcome.success),
+        "lift": round(float(outcome.lift), 6),
+        "duration": round(float(outcome.time), 4),
+        "failure": outcome.failure(),
+    }
+
+
+# ------------------------------------------------------------------------------------------- workers
+_ENV = None
+
+
+def _init_worker() -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import torch
+
+    torch.set_num_threads(1)
+    atexit.register(_close_worker_env)  # free the GL context before the interpreter goes
+
+
+def _run(job: Job) -> dict:
+    """Execute one primitive from the scene's settled state in this process's environment."""
+    global _ENV
+    from scenegen.env.robosuite_env import SceneEnv
+    from scenegen.policy.rollout import run_primitive
+
+    if _ENV is None:
+        _ENV = SceneEnv(
+            job.scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
+        )
+    _ENV.reset_to(job.scene)
+    outcome, _ = run_primitive(_ENV, job.primitive)
+    return _row(job, outcome)
+
+
+def _close_worker_env() -> None:
+    global _ENV
+    if _ENV is not None:
+        _ENV.close()
+        _ENV = None
+
+
+# -------------------------------------------------------------------------------------------- label
+def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str]) -> list[Job]:
+    unknown = [p for p in primitives if p not in PRIMITIVES]
+    if unknown:
+        raise LabelError(f"--primitives {unknown}: unknown; choose from {', '.join(PRIMITIVES)}")
+    return [
+        Job(scene, scene_sha256(scene), name, PRIMITIVES[name].version)
+        for scene in scenes
+        if feasible(scene)
+        for name in primitives
+    ]
+
+
+def per_tag_selection(scenes: Sequence[EnvScene], n: int) -> list[EnvScene]:
+    """The first ``n`` scenes holding each rare tag and the first ``n`` nominal ones, in source order."""
+    chosen: set[int] = set()
+    for tag in (*RARE_TAGS, "nominal"):
+        holding = [i for i, s in enumerate(scenes) if s.tags.get(tag)]
+        chosen.update(holding[:n])
+    return [scenes[i] for i in sorted(chosen)]
+
+
+def _cached(out: Path, log: Path) -> dict[tuple, dict]:
+    rows = []
+    if out.exists():
+        import pyarrow.parquet as pq
+
+        rows += pq.read_table(out).to_pylist()
+    rows += _recover_jsonl(log)
+    return {(r["scene_sha256"], r["primitive"], r["primitive_version"]): r for r in rows}
+
+
+def label(
+    source: Path,
+    out: Path,
+    primitives: Sequence[str] | None = None,
+    split: str | None = "train",
+    limit: int | None = None,
+    workers: int = 1,
+    progress: bool = True,
+    per_tag: int | None = None,
+) -> dict:
+    """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
+    every primitive (or those named); returns counts (rows, run now, reused from the cache).
+    ``per_tag``: only the first N scenes holding each rare tag and the first N nominal ones (in
+    source order), for a success table per tag without labelling every scene."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from tqdm import tqdm
+
+    from scenegen.store.batch import atomic_write
+
+    out = Path(out)
+    try:
+        scenes = load_scenes(source, split)
+    except (OSError, ValueError) as exc:
+        raise LabelError(f"{source}: {str(exc).splitlines()[0]}") from None
+    if per_tag is not None:
+        scenes = per_tag_selection(scenes, per_tag)
+    scenes = scenes[:limit] if limit is not None else scenes
+    jobs = label_jobs(scenes, list(primitives or PRIMITIVES))
+    log = out.with_name(out.name + ".rows.jsonl")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cache = _cached(out, log)
+    todo = [job for job in jobs if job.key not in cache]
+    with open(log, "a") as sink:
+        for row in tqdm(_execute(todo, workers), total=len(todo), disable=not progress, desc="label"):
+            sink.write(json.dumps(row, sort_keys=True) + "\n")
+            sink.flush()
+            cache[(row["scene_sha256"], row["primitive"], row["primitive_version"])] = row
+    rows = [cache[job.key] for job in jobs]
+    buffer = pa.BufferOutputStream()
+    pq.write_table(pa.Table.from_pylist(rows), buffer)
+    atomic_write(out, buffer.getvalue().to_pybytes())
+    log.unlink(missing_ok=True)
+    return {"rows": len(rows), "ran": len(todo), "reused": len(jobs) - len(todo), "out": str(out)}
+
+
+def _execute(jobs: list[Job], workers: int) -> Iterator[dict]:
+    if workers <= 1:
+        _init_worker()
+        try:
+            yield from map(_run, jobs)
+        finally:
+            _close_worker_env()
+        return
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
+        yield from pool.map(_run, jobs, chunksize=1)
