@@ -1,4 +1,5 @@
-"""Policy commands: `label` (expert labels: every primitive from every scene's settled state)."""
+"""Policy commands: `label` (expert labels: every primitive from every scene's settled state) and
+`success-table` (success per tag x primitive from those labels)."""
 
 from __future__ import annotations
 
@@ -30,6 +31,17 @@ def add_commands(sub) -> None:
     lab.add_argument("--quiet", action="store_true", help="no progress bar")
     lab.set_defaults(run=label)
 
+    tab = sub.add_parser(
+        "success-table",
+        help="success of each primitive per rare tag (and tag x category) from expert labels",
+        description="Markdown table of success rate, 95 %% Wilson interval and scenes per tag x primitive "
+        "(best per tag in bold) and per (tag, target category) cell with enough scenes, then the cells "
+        "whose best primitive beats nominal's best of the same category by 15 points or more.",
+    )
+    tab.add_argument("labels", type=Path, help="labels Parquet file written by `scenegen label`")
+    tab.add_argument("--min-cell", type=int, default=30, help="scenes a (tag, category) cell needs (30)")
+    tab.set_defaults(run=success_table)
+
 
 def label(args: argparse.Namespace) -> int:
     from scenegen.policy.labels import LabelError, label
@@ -50,4 +62,24 @@ def label(args: argparse.Namespace) -> int:
     except (LabelError, OSError) as exc:
         return fail(first_line(exc))
     print(f"{stats['rows']} rows ({stats['ran']} run, {stats['reused']} reused) -> {stats['out']}")
+    return 0
+
+
+def success_table(args: argparse.Namespace) -> int:
+    import pyarrow.parquet as pq
+
+    from scenegen.policy.success_table import differs_from_nominal, markdown_table
+
+    try:
+        rows = pq.read_table(args.labels).to_pylist()
+    except (OSError, ValueError) as exc:
+        return fail(f"{args.labels}: not a labels Parquet file ({first_line(exc)})")
+    print(markdown_table(rows, args.min_cell))
+    found = differs_from_nominal(rows, args.min_cell)
+    print(f"{len(found)} (tag, category) cells whose best primitive beats nominal's best by >= 15 points:")
+    for f in found:
+        print(
+            f"  {f['tag']} / {f['category']}: {f['best']} {f['best_rate']:.2f} vs "
+            f"{f['nominal_best']} {f['nominal_best_rate_here']:.2f} (n={f['scenes']})"
+        )
     return 0
