@@ -1,5 +1,5 @@
 """Policy commands: `label` (expert labels: every primitive from every scene's settled state) and
-`success-table` (success per tag x primitive from those labels)."""
+`success-table` (success per tag x primitive from those labels), `policy train|eval`."""
 
 from __future__ import annotations
 
@@ -42,6 +42,42 @@ def add_commands(sub) -> None:
     tab.add_argument("--min-cell", type=int, default=30, help="scenes a (tag, category) cell needs (30)")
     tab.set_defaults(run=success_table)
 
+    pol = sub.add_parser(
+        "policy", help="train the baseline policy on labelled sources; evaluate it in closed loop"
+    )
+    cmds = pol.add_subparsers(dest="policy_command", metavar="COMMAND", required=True)
+    tr = cmds.add_parser(
+        "train",
+        help="train the primitive-choosing CNN on labelled sources (safetensors checkpoint)",
+        description="Each --data pair is a scene source (batch or reference table) and its `scenegen "
+        "label` output. Examples are the front camera's RGB-D + target mask at the settled state; "
+        "batches are drawn by the seed's mixture: real/reference sources weight 1, batches alpha.",
+    )
+    tr.add_argument(
+        "--data", nargs=2, action="append", type=Path, metavar=("SCENES", "LABELS"), required=True
+    )
+    tr.add_argument("--out", type=Path, required=True, help="checkpoint folder")
+    tr.add_argument("--steps", type=int, default=500)
+    tr.add_argument("--batch-size", type=int, default=32)
+    tr.add_argument("--alpha", type=float, default=1.0, help="weight of the synthetic sources (default 1)")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
+    tr.set_defaults(run=policy_train)
+    ev = cmds.add_parser(
+        "eval",
+        help="run a policy in closed loop on scenes: episodes with traces and failure labels",
+        description="Observe, choose, execute, re-observe, up to 3 attempts per scene; one episode folder "
+        "per scene under --out and summary.json (success rate, failure labels).",
+    )
+    ev.add_argument("--checkpoint", type=Path, required=True)
+    ev.add_argument("--scenes", type=Path, required=True, help="batch directory or reference table")
+    ev.add_argument("--split", default="heldout", help="a table's split (default heldout)")
+    ev.add_argument("--n", type=int, default=50, help="scenes to run (default 50)")
+    ev.add_argument("--outside-panels", action="store_true", help="skip the transfer experiment's panels")
+    ev.add_argument("--labels", type=Path, help="expert labels of these scenes (for grasp-choice failures)")
+    ev.add_argument("--out", type=Path, required=True)
+    ev.set_defaults(run=policy_eval)
+
 
 def label(args: argparse.Namespace) -> int:
     from scenegen.policy.labels import LabelError, label
@@ -82,4 +118,53 @@ def success_table(args: argparse.Namespace) -> int:
             f"  {f['tag']} / {f['category']}: {f['best']} {f['best_rate']:.2f} vs "
             f"{f['nominal_best']} {f['nominal_best_rate_here']:.2f} (n={f['scenes']})"
         )
+    return 0
+
+
+def policy_train(args: argparse.Namespace) -> int:
+    from scenegen.policy.train import data_description, labelled_examples, train_policy
+
+    if args.steps < 1 or args.batch_size < 1 or args.alpha < 0:
+        return fail("--steps and --batch-size must be at least 1, --alpha at least 0")
+    split = None if args.split == "all" else args.split
+    try:
+        examples = labelled_examples([tuple(pair) for pair in args.data], split)
+    except (OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    summary = train_policy(
+        examples,
+        args.out,
+        args.steps,
+        args.batch_size,
+        args.alpha,
+        args.seed,
+        data=data_description(args.data),
+    )
+    first, last = summary["losses"][:20], summary["losses"][-20:]
+    print(
+        f"{summary['examples']} examples, {args.steps} steps: loss {sum(first) / len(first):.4f} -> "
+        f"{sum(last) / len(last):.4f} ({summary['cpu_seconds']} CPU-s) -> {args.out}"
+    )
+    return 0
+
+
+def policy_eval(args: argparse.Namespace) -> int:
+    from scenegen.env.scenes import load_scenes
+    from scenegen.policy.evaluate import evaluate
+
+    try:
+        scenes = load_scenes(args.scenes, None if args.split == "all" else args.split)
+        if args.outside_panels:
+            from scenegen.policy.panels import load_panels
+
+            panels = load_panels()
+            taken = {f"reference_{i:06d}" for i in panels["rare_layouts"] + panels["common"]}
+            scenes = [s for s in scenes if s.scene_id not in taken]
+        summary = evaluate(args.checkpoint, scenes[: args.n], args.out, args.labels)
+    except (OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    print(
+        f"{summary['episodes']} episodes, success {summary['success_rate']:.2%}, "
+        f"failures {summary['failures']}"
+    )
     return 0

@@ -1,0 +1,141 @@
+"""Training the baseline policy on labelled scene sources mixed by a recipe.
+
+A labelled source is a pair (scenes, labels): a batch or reference table and the expert labels
+``scenegen label`` wrote for it. Each labelled scene's decision-point observation (the front camera,
+rendered once from its settled state) becomes one example whose targets are the success bits of every
+primitive it was labelled with. Batches are drawn by a :class:`~scenegen.env.mixture.MixtureSampler`
+(by default the seed's loss over the sources: reference and real sources in the real role, batches in
+the synthetic one, weighted ``alpha``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from scenegen.core.files import sha256_file
+from scenegen.env.mixture import MixtureRecipe, MixtureSampler
+from scenegen.env.scenes import EnvScene, load_scenes
+from scenegen.policy.labels import scene_sha256
+from scenegen.policy.network import PrimitivePolicy, observation_tensor
+from scenegen.policy.primitives import PRIMITIVES
+
+CAMERA, CAMERA_SIZE = "front", (320, 240)
+
+
+@dataclass
+class Examples:
+    """``x`` (N, 5, H, W) observations, ``y`` (N, P) success bits, ``known`` (N, P) which bits were
+    labelled; ``scenes`` the N scenes, ``primitives`` the P names."""
+
+    x: np.ndarray
+    y: np.ndarray
+    known: np.ndarray
+    scenes: list[EnvScene]
+    primitives: list[str]
+
+
+def render_observation(env, scene: EnvScene) -> np.ndarray:
+    """The network input of ``scene`` at its settled state (front camera, resized)."""
+    env.reset_to(scene)
+    obs = env.camera_observations()
+    return observation_tensor(
+        obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], scene.target_id
+    )
+
+
+def labelled_examples(
+    sources: Sequence[tuple[Path, Path]], split: str | None = "train", env=None
+) -> Examples:
+    """Examples of every labelled scene of every (scenes, labels) pair."""
+    import pyarrow.parquet as pq
+
+    from scenegen.env.robosuite_env import SceneEnv
+
+    primitives = list(PRIMITIVES)
+    by_sha: dict[str, EnvScene] = {}
+    bits: dict[str, dict[str, bool]] = {}
+    for scenes_path, labels_path in sources:
+        for scene in load_scenes(scenes_path, split):
+            by_sha.setdefault(scene_sha256(scene), scene)
+        for row in pq.read_table(labels_path).to_pylist():
+            bits.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    shas = [sha for sha in by_sha if sha in bits]
+    if not shas:
+        raise ValueError("no labelled scene: the labels name none of the given scenes (same split?)")
+    own = env is None
+    env = env or SceneEnv(by_sha[shas[0]], cameras=[CAMERA], camera_size=CAMERA_SIZE, render_each_step=False)
+    try:
+        x = np.stack([render_observation(env, by_sha[sha]) for sha in shas])
+    finally:
+        if own:
+            env.close()
+    y = np.array([[bits[sha].get(p, False) for p in primitives] for sha in shas], dtype=np.float32)
+    known = np.array([[p in bits[sha] for p in primitives] for sha in shas])
+    return Examples(x, y, known, [by_sha[sha] for sha in shas], primitives)
+
+
+def train_policy(
+    examples: Examples,
+    out: Path,
+    steps: int = 500,
+    batch_size: int = 32,
+    alpha: float = 1.0,
+    seed: int = 0,
+    lr: float = 1e-3,
+    recipe: MixtureRecipe | None = None,
+    data: dict | None = None,
+) -> dict:
+    """Train a :class:`PrimitivePolicy` for ``steps`` batches drawn by the mixture; save it to ``out``
+    (safetensors + config.json with the losses and the recipe's effective shares)."""
+    torch.manual_seed(seed)
+    if recipe is None:
+        sizes: dict[str, dict[str, int]] = {"real": {}, "synthetic": {}}
+        for scene in examples.scenes:
+            role = "synthetic" if scene.origin == "synthetic" else "real"
+            sizes[role][scene.source] = sizes[role].get(scene.source, 0) + 1
+        if not sizes["real"]:  # only generated scenes: they are the whole loss
+            sizes["real"], sizes["synthetic"], alpha = sizes["synthetic"], {}, 0.0
+        recipe = MixtureRecipe.seed_loss(sizes["real"], sizes["synthetic"], alpha)
+    sampler = MixtureSampler(recipe, examples.scenes, num_samples=steps * batch_size, seed=seed)
+    order = np.fromiter(iter(sampler), dtype=np.int64).reshape(steps, batch_size)
+    model = PrimitivePolicy(examples.primitives)
+    optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+    x, y = torch.from_numpy(examples.x), torch.from_numpy(examples.y)
+    known = torch.from_numpy(examples.known.astype(np.float32))
+    losses, started = [], time.process_time()
+    for batch in order:
+        index = torch.from_numpy(batch)
+        logits = model(x[index])
+        per_bit = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[index], reduction="none")
+        loss = (per_bit * known[index]).sum() / known[index].sum().clamp(min=1)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(round(loss.item(), 6))
+    summary = {
+        "steps": steps,
+        "batch_size": batch_size,
+        "seed": seed,
+        "examples": len(examples.scenes),
+        "effective_shares": sampler.effective_shares(),
+        "losses": losses,
+        "cpu_seconds": round(time.process_time() - started, 2),
+        "data": data or {},
+    }
+    model.eval().save(out, {"training": summary})
+    return summary
+
+
+def data_description(sources: Sequence[tuple[Path, Path]]) -> dict:
+    """The labelled sources as the checkpoint records them (paths and the labels' sha256)."""
+    return {
+        "sources": [
+            {"scenes": str(s), "labels": str(lab), "labels_sha256": sha256_file(lab)} for s, lab in sources
+        ]
+    }
