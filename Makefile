@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env sweep clean
+.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -59,6 +59,9 @@ bench-null: setup  ## 2,000 null-condition scenes of the generator against the h
 
 bench-env: setup  ## environment reset and step costs, with and without a camera (benchmarks/env_step.py)
 	$(BIN)/python benchmarks/env_step.py
+
+bench-primitives: setup  ## CPU-s per primitive execution and per labelled scene, observation render time (benchmarks/primitives.py)
+	$(BIN)/python benchmarks/primitives.py
 
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py
