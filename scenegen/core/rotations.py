@@ -24,3 +24,14 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     """Rotation matrix (3, 3) about world z by ``yaw`` radians."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def camera_rotation(position: Sequence[float], lookat: Sequence[float]) -> np.ndarray:
+    """Camera-to-world rotation (3, 3) of a camera at ``position`` looking at ``lookat``, in the
+    MuJoCo/OpenGL convention: x right, y up, looking along -z (the image's up is world +z)."""
+    forward = np.asarray(lookat, float) - np.asarray(position, float)
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    return np.stack([right, up, -forward], axis=1)

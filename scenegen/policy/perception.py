@@ -13,19 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scenegen.core.rotations import camera_rotation
 from scenegen.schema.scene import Camera
 
 MIN_POINTS = 20  # fewer masked pixels than this: the target is not seen
-
-
-def camera_to_world(cam: Camera) -> np.ndarray:
-    """Camera-to-world rotation (3, 3): x right, y up, looking along -z (MuJoCo/OpenGL)."""
-    forward = np.asarray(cam.lookat, float) - np.asarray(cam.position, float)
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    return np.stack([right, up, -forward], axis=1)
 
 
 def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camera) -> np.ndarray:
@@ -44,7 +35,7 @@ def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camer
     x_cam = (u + 0.5 - k["cx"]) * z / k["fx"]
     y_cam = -(v + 0.5 - k["cy"]) * z / k["fy"]
     points = np.stack([x_cam, y_cam, -z], axis=1)
-    return points @ camera_to_world(cam).T + np.asarray(cam.position, float)
+    return points @ camera_rotation(cam.position, cam.lookat).T + np.asarray(cam.position, float)
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import mujoco
 import numpy as np
 
 from scenegen.assets.catalog import Asset, Catalog
+from scenegen.core import rotations
 from scenegen.core.layout import FURNITURE, TABLE_SIZE, TABLE_TOP_Z
 from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement
 
@@ -255,12 +256,7 @@ def _add_lighting(spec: mujoco.MjSpec, lighting: Lighting) -> None:
 
 def camera_rotation(cam: Camera) -> np.ndarray:
     """Camera-to-world rotation (3, 3), MuJoCo/OpenGL convention: x right, y up, looking along -z."""
-    forward = np.asarray(cam.lookat, float) - np.asarray(cam.position, float)
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    return np.stack([right, up, -forward], axis=1)
+    return rotations.camera_rotation(cam.position, cam.lookat)
 
 
 def add_camera(spec: mujoco.MjSpec, cam: Camera) -> None:
