@@ -17,7 +17,7 @@ from scenegen.policy.failures import failure_label
 from scenegen.policy.labels import scene_sha256
 from scenegen.policy.network import PrimitivePolicy, observation_tensor
 from scenegen.policy.rollout import run_primitive
-from scenegen.policy.task import feasible
+from scenegen.policy.task import TIME_LIMIT, feasible
 from scenegen.policy.train import CAMERA, CAMERA_SIZE
 
 ATTEMPTS = 3
@@ -33,7 +33,10 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
     }
     tried: set[str] = set()
     success = False
+    start = float(env.sim.data._data.time)
     for _ in range(ATTEMPTS):
+        if float(env.sim.data._data.time) - start >= TIME_LIMIT:  # the task's time limit: no new attempt
+            break
         obs = env.camera_observations()
         x = observation_tensor(
             obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], scene.target_id
