@@ -1,8 +1,12 @@
 """What the robot sees at a decision point, as a planner uses it (:class:`TargetView`).
 
-The frames are rendered once, at the decision point, from every camera the environment observes: the
+Two observation kinds, never mixed: ``rgbd`` (:func:`observe`), what a real robot has: the frames are
+rendered once, at the decision point, from every camera the environment observes, and give the
 target's points (its instance mask and depth, back-projected) and the other instances' points (objects
-and furniture; not the table, the arena or the robot), plus the robot's own state.
+and furniture; not the table, the arena or the robot). ``state`` (:func:`observe_state`), the
+ablation: the same summary computed from the simulator's state, every vertex of the target's and the
+other objects' meshes and of the furniture's boxes at their current poses, so a primitive's planner
+sees the whole object, occluded or not. Both add the robot's own state.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ class TargetView:
 
 
 BACKGROUND = ("arena", "table", "robot")
+KINDS = ("rgbd", "state")
 
 
 def observe(env) -> tuple[dict, TargetView | None]:
@@ -45,9 +50,49 @@ def observe(env) -> tuple[dict, TargetView | None]:
     if estimate is None:
         return obs, None
     points = np.concatenate(others) if others else np.zeros((0, 3))
+    base, closing = _robot_state(env)
+    return obs, TargetView(estimate, points, base, closing)
+
+
+def _robot_state(env) -> tuple[tuple[float, float], tuple[float, float]]:
     base = env.sim.data._data.xpos[env.sim.model._model.body("robot0_base").id][:2]
     closing = grip_site(env)[1][:2, 0]  # the site's x axis: the fingers close along it
     closing = closing / max(np.linalg.norm(closing), 1e-9)
-    return obs, TargetView(
-        estimate, points, (float(base[0]), float(base[1])), (float(closing[0]), float(closing[1]))
-    )
+    return (float(base[0]), float(base[1])), (float(closing[0]), float(closing[1]))
+
+
+def _body_points(model, data, body: int) -> np.ndarray:
+    """World points of a body's visible geoms: mesh vertices, or a box's corners."""
+    points = []
+    for g in np.nonzero(model.geom_bodyid == body)[0]:
+        if model.geom_group[g] not in (0, 1):
+            continue  # collision parts (group 3) duplicate the visual mesh
+        rot, pos = data.geom_xmat[g].reshape(3, 3), data.geom_xpos[g]
+        if model.geom_type[g] == 7:  # mjGEOM_MESH
+            mesh = model.geom_dataid[g]
+            start, count = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+            local = model.mesh_vert[start : start + count]
+        elif model.geom_type[g] == 6:  # mjGEOM_BOX
+            half = model.geom_size[g]
+            local = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+        else:
+            continue
+        points.append(local @ rot.T + pos)
+    return np.concatenate(points) if points else np.zeros((0, 3))
+
+
+def observe_state(env) -> tuple[dict, TargetView]:
+    """The ``state`` ablation: the view from the simulator's state (no rendering); its observation
+    dict holds the target's pose, so an episode record says what the decision used."""
+    model, data = env.sim.model._model, env.sim.data._data
+    scene = env.scene
+    target = _body_points(model, data, env.target_body_id)
+    others = [
+        _body_points(model, data, model.body(o.name).id) for o in scene.objects if o.name != scene.target
+    ]
+    others += [_body_points(model, data, model.body(f.name).id) for f in scene.furniture]
+    estimate = estimate_target(target)
+    base, closing = _robot_state(env)
+    points = np.concatenate(others) if others else np.zeros((0, 3))
+    position, quat = env.target_pose()
+    return {"target_pos": position, "target_quat": quat}, TargetView(estimate, points, base, closing)

@@ -111,3 +111,21 @@ def test_a_can_at_the_tables_edge_is_pushed_inward_then_lifted(env):
     outcome, params = run_primitive(env, "push_from_edge_then_grasp")
     assert params["start"][1] > params["position"][1]  # the push runs away from the +y edge
     assert outcome.success, (outcome, params)
+
+
+def test_the_state_ablation_sees_the_whole_target_and_is_never_mixed_with_rgbd(env):
+    from scenegen.env.episodes import EpisodeRecorder
+    from scenegen.policy.observation import observe_state
+
+    env.reset_to(bottle_alone())
+    obs, view = observe_state(env)
+    true = env.target_pose()[0]
+    assert np.linalg.norm(view.target.centre[:2] - true[:2]) < 0.005  # every vertex: no viewing bias
+    assert view.target.extent[1] == pytest.approx(0.07, abs=0.005)
+    np.testing.assert_array_equal(obs["target_pos"], true)
+    outcome, _ = run_primitive(env, "top_grasp", observation_kind="state")
+    assert outcome.success
+    env.reset_to(bottle_alone())
+    recorder = EpisodeRecorder(env, "rgbd_episode", observation_kind="rgbd")
+    with pytest.raises(ValueError, match="the episode records 'rgbd'"):
+        run_primitive(env, "top_grasp", recorder, observation_kind="state")
