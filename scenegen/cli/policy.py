@@ -28,6 +28,12 @@ def add_commands(sub) -> None:
         "--per-tag", type=int, help="only the first N scenes holding each rare tag and N nominal ones"
     )
     lab.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    lab.add_argument(
+        "--observation",
+        choices=("rgbd", "state"),
+        default="rgbd",
+        help="what the planners see: camera frames (default) or the simulator's state (the ablation)",
+    )
     lab.add_argument("--quiet", action="store_true", help="no progress bar")
     lab.set_defaults(run=label)
 
@@ -94,6 +100,7 @@ def label(args: argparse.Namespace) -> int:
             workers=args.workers,
             progress=not args.quiet,
             per_tag=args.per_tag,
+            observation=args.observation,
         )
     except (LabelError, OSError) as exc:
         return fail(first_line(exc))

@@ -2,15 +2,16 @@
 the simulator (``scenegen label SCENES --out labels.parquet``).
 
 One row per (scene, primitive): the scene (id, source, origin, target category, the rare tags it
-holds, ``scene_sha256``), the primitive and its version, ``success``, ``lift`` (m), ``duration``
+holds, ``scene_sha256``), the primitive and its version, the ``observation`` its planner used
+(``rgbd``, or the ``state`` ablation), ``success``, ``lift`` (m), ``duration``
 (simulated s) and ``failure`` (the failure event, ``RetrieveOutcome.failure``). Scenes whose target is
 on the floor are left out (infeasible for a table-top arm). Rows are in (scene, primitive) order and
 hold no wall-clock data, so the same scenes give the same file whatever the worker count.
 
 Resumable and cached: every finished row is appended to ``<out>.rows.jsonl`` at once; a rerun (after a
-kill, or with more scenes or primitives) reuses every row whose (scene_sha256, primitive, version) it
-already holds, from that log or from an existing ``out``, and runs only the rest. ``out`` is written
-atomically at the end.
+kill, or with more scenes or primitives) reuses every row whose (scene_sha256, primitive, version,
+observation) it already holds, from that log or from an existing ``out``, and runs only the rest.
+``out`` is written atomically at the end.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from scenegen.env.scenes import EnvScene, load_scenes
+from scenegen.policy.observation import KINDS
 from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.task import feasible
 from scenegen.schema.condition import RARE_TAGS
@@ -46,10 +48,15 @@ class Job:
     sha256: str
     primitive: str
     version: int
+    observation: str = "rgbd"  # what the planner sees: camera frames, or the state ablation
 
     @property
-    def key(self) -> tuple[str, str, int]:
-        return (self.sha256, self.primitive, self.version)
+    def key(self) -> tuple[str, str, int, str]:
+        return (self.sha256, self.primitive, self.version, self.observation)
+
+
+def _key(row: dict) -> tuple[str, str, int, str]:
+    return (row["scene_sha256"], row["primitive"], row["primitive_version"], row.get("observation", "rgbd"))
 
 
 def scene_sha256(scene: EnvScene) -> str:
@@ -79,6 +86,7 @@ def _row(job: Job, outcome) -> dict:
         "tags": [t for t in RARE_TAGS if scene.tags.get(t)],
         "primitive": job.primitive,
         "primitive_version": job.version,
+        "observation": job.observation,
         "success": bool(outcome.success),
         "lift": round(float(outcome.lift), 6),
         "duration": round(float(outcome.time), 4),
@@ -109,7 +117,7 @@ def _run(job: Job) -> dict:
             job.scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
         )
     _ENV.reset_to(job.scene)
-    outcome, _ = run_primitive(_ENV, job.primitive)
+    outcome, _ = run_primitive(_ENV, job.primitive, observation_kind=job.observation)
     return _row(job, outcome)
 
 
@@ -121,12 +129,14 @@ def _close_worker_env() -> None:
 
 
 # -------------------------------------------------------------------------------------------- label
-def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str]) -> list[Job]:
+def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str], observation: str = "rgbd") -> list[Job]:
     unknown = [p for p in primitives if p not in PRIMITIVES]
     if unknown:
         raise LabelError(f"--primitives {unknown}: unknown; choose from {', '.join(PRIMITIVES)}")
+    if observation not in KINDS:
+        raise LabelError(f"--observation {observation}: choose one of {', '.join(KINDS)}")
     return [
-        Job(scene, scene_sha256(scene), name, PRIMITIVES[name].version)
+        Job(scene, scene_sha256(scene), name, PRIMITIVES[name].version, observation)
         for scene in scenes
         if feasible(scene)
         for name in primitives
@@ -149,7 +159,7 @@ def _cached(out: Path, log: Path) -> dict[tuple, dict]:
 
         rows += pq.read_table(out).to_pylist()
     rows += _recover_jsonl(log)
-    return {(r["scene_sha256"], r["primitive"], r["primitive_version"]): r for r in rows}
+    return {_key(r): r for r in rows}
 
 
 def label(
@@ -161,6 +171,7 @@ def label(
     workers: int = 1,
     progress: bool = True,
     per_tag: int | None = None,
+    observation: str = "rgbd",
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
@@ -180,7 +191,7 @@ def label(
     if per_tag is not None:
         scenes = per_tag_selection(scenes, per_tag)
     scenes = scenes[:limit] if limit is not None else scenes
-    jobs = label_jobs(scenes, list(primitives or PRIMITIVES))
+    jobs = label_jobs(scenes, list(primitives or PRIMITIVES), observation)
     log = out.with_name(out.name + ".rows.jsonl")
     out.parent.mkdir(parents=True, exist_ok=True)
     cache = _cached(out, log)
@@ -189,8 +200,8 @@ def label(
         for row in tqdm(_execute(todo, workers), total=len(todo), disable=not progress, desc="label"):
             sink.write(json.dumps(row, sort_keys=True) + "\n")
             sink.flush()
-            cache[(row["scene_sha256"], row["primitive"], row["primitive_version"])] = row
-    rows = [cache[job.key] for job in jobs]
+            cache[_key(row)] = row
+    rows = [{**cache[job.key], "observation": job.observation} for job in jobs]
     buffer = pa.BufferOutputStream()
     pq.write_table(pa.Table.from_pylist(rows), buffer)
     atomic_write(out, buffer.getvalue().to_pybytes())

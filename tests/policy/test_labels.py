@@ -4,6 +4,7 @@ and cached by (scene sha256, primitive, version)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -59,3 +60,13 @@ def test_bad_input_is_named(demo_batch: Path, tmp_path: Path):
         label(demo_batch, tmp_path / "x.parquet", ["fly"], progress=False)
     with pytest.raises(LabelError, match="no index.jsonl"):
         label(tmp_path, tmp_path / "x.parquet", progress=False)
+
+
+def test_the_state_ablation_is_labelled_apart_and_recorded(labelled: Path, demo_batch: Path, tmp_path: Path):
+    out = tmp_path / "labels.parquet"
+    shutil.copy(labelled, out)  # the rgbd rows do not answer for the state ablation
+    stats = label(demo_batch, out, ["top_grasp"], limit=1, observation="state", progress=False)
+    assert (stats["ran"], stats["reused"]) == (1, 0)
+    assert [r["observation"] for r in pq.read_table(out).to_pylist()] == ["state"]
+    with pytest.raises(LabelError, match="--observation x"):
+        label(demo_batch, out, ["top_grasp"], observation="x", progress=False)
