@@ -33,6 +33,8 @@ examples:
   scenegen show runs/demo            # contact sheet: runs/demo/contact_sheet.png
   scenegen audit runs/demo/manifest.yaml
   scenegen manifest add runs/demo    # into data_manifest.yaml, after auditing it
+  scenegen export runs/demo --format webdataset --out runs/demo-wds
+  scenegen label runs/demo --out runs/labels.parquet   # every grasp primitive per scene (docs/policy.md)
 """
 
 
