@@ -15,6 +15,7 @@ temporary folder beside ``out`` and renamed into place at the end: an interrupte
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import shutil
 import tarfile
@@ -81,7 +82,7 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
         description = {
             "format": "webdataset",
             "scenegen": __version__,
-            "webdataset": wds.__version__ if hasattr(wds, "__version__") else _version("webdataset"),
+            "webdataset": importlib.metadata.version("webdataset"),
             "source": {"batch": str(batch.resolve()), "checksum_root": _checksum_root(batch)},
             "counts": {"scenes": len(rows), "assets": assets},
             "scene_ids": [row["scene_id"] for row in rows],
@@ -95,12 +96,6 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return description
-
-
-def _version(package: str) -> str:
-    import importlib.metadata
-
-    return importlib.metadata.version(package)
 
 
 def _checksum_root(batch: Path) -> str | None:

@@ -14,11 +14,11 @@ import torch
 from scenegen.env.episodes import EpisodeRecorder, write_episode
 from scenegen.env.scenes import EnvScene
 from scenegen.policy.failures import failure_label
-from scenegen.policy.labels import scene_sha256
-from scenegen.policy.network import PrimitivePolicy, observation_tensor
+from scenegen.policy.labels import CAMERA_SIZE, scene_sha256
+from scenegen.policy.network import PrimitivePolicy
 from scenegen.policy.rollout import run_primitive
 from scenegen.policy.task import TIME_LIMIT, feasible
-from scenegen.policy.train import CAMERA, CAMERA_SIZE
+from scenegen.policy.train import CAMERA, policy_input
 
 ATTEMPTS = 3
 
@@ -38,9 +38,7 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
         if float(env.sim.data._data.time) - start >= TIME_LIMIT:  # the task's time limit: no new attempt
             break
         obs = env.camera_observations()
-        x = observation_tensor(
-            obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], scene.target_id
-        )
+        x = policy_input(obs, scene.target_id)
         choice = policy.choose(torch.from_numpy(x), exclude=tried)
         tried.add(choice)
         outcome, _ = run_primitive(env, choice, recorder)

@@ -31,7 +31,7 @@ from scenegen.policy.observation import KINDS
 from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.task import feasible
 from scenegen.schema.condition import RARE_TAGS
-from scenegen.store.batch import _recover_jsonl
+from scenegen.store.batch import recover_jsonl
 
 CAMERAS = ("front", "side")  # what the planners observe
 CAMERA_SIZE = (320, 240)  # px: a 3 cm spoon covers enough pixels to be seen from the default cameras
@@ -158,7 +158,7 @@ def _cached(out: Path, log: Path) -> dict[tuple, dict]:
         import pyarrow.parquet as pq
 
         rows += pq.read_table(out).to_pylist()
-    rows += _recover_jsonl(log)
+    rows += recover_jsonl(log)
     return {_key(r): r for r in rows}
 
 

@@ -21,11 +21,11 @@ import torch
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
 from scenegen.env.scenes import EnvScene, load_scenes
-from scenegen.policy.labels import scene_sha256
+from scenegen.policy.labels import CAMERA_SIZE, scene_sha256
 from scenegen.policy.network import PrimitivePolicy, observation_tensor
 from scenegen.policy.primitives import PRIMITIVES
 
-CAMERA, CAMERA_SIZE = "front", (320, 240)
+CAMERA = "front"  # the policy looks through the front camera, at the labeller's CAMERA_SIZE
 
 
 @dataclass
@@ -40,13 +40,17 @@ class Examples:
     primitives: list[str]
 
 
-def render_observation(env, scene: EnvScene) -> np.ndarray:
-    """The network input of ``scene`` at its settled state (front camera, resized)."""
-    env.reset_to(scene)
-    obs = env.camera_observations()
+def policy_input(obs: dict, target_id: int) -> np.ndarray:
+    """The network input (5, H, W) from a camera observation dict (the front camera's frames)."""
     return observation_tensor(
-        obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], scene.target_id
+        obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], target_id
     )
+
+
+def render_observation(env, scene: EnvScene) -> np.ndarray:
+    """The network input of ``scene`` at its settled state."""
+    env.reset_to(scene)
+    return policy_input(env.camera_observations(), scene.target_id)
 
 
 def labelled_examples(

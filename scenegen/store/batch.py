@@ -170,8 +170,8 @@ class BatchStore:
         for leftover in [*root.glob(".tmp_*"), *root.glob(".*.tmp*"), *(root / ASSETS).glob(".*.tmp*")]:
             shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
         (root / ASSETS).mkdir(exist_ok=True)
-        index = _recover_jsonl(root / INDEX)
-        rejections = _recover_jsonl(root / REJECTIONS)
+        index = recover_jsonl(root / INDEX)
+        rejections = recover_jsonl(root / REJECTIONS)
         indexed = {row["scene_id"] for row in index}
         for entry in root.iterdir():
             if entry.is_dir() and entry.name.startswith("scene_") and entry.name not in indexed:
@@ -230,7 +230,7 @@ class BatchStore:
             os.fsync(f.fileno())
 
 
-def _recover_jsonl(path: Path) -> list[dict]:
+def recover_jsonl(path: Path) -> list[dict]:
     """Rows of an append-only log, cutting a torn last line (a write killed midway) off the file."""
     if not path.exists():
         return []
