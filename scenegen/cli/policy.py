@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from scenegen.cli.common import fail, first_line
@@ -27,6 +28,13 @@ def add_commands(sub) -> None:
     lab.add_argument(
         "--per-tag", type=int, help="only the first N scenes holding each rare tag and N nominal ones"
     )
+    lab.add_argument(
+        "--per-cell",
+        type=int,
+        metavar="N",
+        help="only the first N scenes of each (tag, target category) cell of --categories",
+    )
+    lab.add_argument("--categories", nargs="+", help="target categories for --per-cell (e.g. can mug box)")
     lab.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     lab.add_argument(
         "--observation",
@@ -44,7 +52,15 @@ def add_commands(sub) -> None:
         "(best per tag in bold) and per (tag, target category) cell with enough scenes, then the cells "
         "whose best primitive beats nominal's best of the same category by 15 points or more.",
     )
-    tab.add_argument("labels", type=Path, help="labels Parquet file written by `scenegen label`")
+    tab.add_argument(
+        "labels", type=Path, nargs="+", help="labels Parquet files written by `scenegen label` (combined)"
+    )
+    tab.add_argument(
+        "--observation",
+        choices=("rgbd", "state"),
+        default="rgbd",
+        help="whose rows to count: the cameras' (default) or the state ablation's; never both",
+    )
     tab.add_argument("--min-cell", type=int, default=30, help="scenes a (tag, category) cell needs (30)")
     tab.set_defaults(run=success_table)
 
@@ -90,6 +106,10 @@ def label(args: argparse.Namespace) -> int:
 
     if args.workers < 1 or any(v is not None and v < 1 for v in (args.limit, args.per_tag)):
         return fail("--workers, --limit and --per-tag must be at least 1")
+    if (args.per_cell is None) != (args.categories is None):
+        return fail("--per-cell N and --categories go together: name the categories whose cells to fill")
+    if args.per_cell is not None and args.per_cell < 1:
+        return fail("--per-cell must be at least 1")
     try:
         stats = label(
             args.scenes,
@@ -101,6 +121,7 @@ def label(args: argparse.Namespace) -> int:
             progress=not args.quiet,
             per_tag=args.per_tag,
             observation=args.observation,
+            per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
         )
     except (LabelError, OSError) as exc:
         return fail(first_line(exc))
@@ -111,12 +132,28 @@ def label(args: argparse.Namespace) -> int:
 def success_table(args: argparse.Namespace) -> int:
     import pyarrow.parquet as pq
 
+    from scenegen.policy.labels import current_rows
     from scenegen.policy.success_table import differs_from_nominal, markdown_table
 
+    tables = []
+    for path in args.labels:
+        try:
+            tables.append(pq.read_table(path).to_pylist())
+        except (OSError, ValueError) as exc:
+            return fail(f"{path}: not a labels Parquet file ({first_line(exc)})")
     try:
-        rows = pq.read_table(args.labels).to_pylist()
-    except (OSError, ValueError) as exc:
-        return fail(f"{args.labels}: not a labels Parquet file ({first_line(exc)})")
+        rows, stale = current_rows(tables, args.observation)
+    except KeyError as exc:
+        return fail(f"{', '.join(map(str, args.labels))}: not labels written by `scenegen label` (no {exc})")
+    if stale:
+        print(
+            f"left out {stale} rows of older primitive versions or another observation kind "
+            f"(relabel with `scenegen label`: it reuses the current rows)",
+            file=sys.stderr,
+        )
+    if not rows:
+        named = ", ".join(map(str, args.labels))
+        return fail(f"{named}: no rows of the current primitives ({args.observation} observation)")
     print(markdown_table(rows, args.min_cell))
     found = differs_from_nominal(rows, args.min_cell)
     print(f"{len(found)} (tag, category) cells whose best primitive beats nominal's best by >= 15 points:")

@@ -16,6 +16,7 @@ from scenegen.env.scenes import EnvScene
 from scenegen.policy.failures import failure_label
 from scenegen.policy.labels import CAMERA_SIZE, scene_sha256
 from scenegen.policy.network import PrimitivePolicy
+from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.rollout import run_primitive
 from scenegen.policy.task import TIME_LIMIT, feasible
 from scenegen.policy.train import CAMERA, policy_input
@@ -56,6 +57,10 @@ def evaluate(checkpoint: Path, scenes: Sequence[EnvScene], out: Path, labels: Pa
     from scenegen.env.robosuite_env import SceneEnv
 
     policy = PrimitivePolicy.load(checkpoint)
+    unknown = sorted(set(policy.primitives) - set(PRIMITIVES))
+    if unknown:
+        raise ValueError(f"{checkpoint}: chooses primitives this code lacks ({', '.join(unknown)}): retrain")
+    coverage = {(tag, category): n for tag, category, n in policy.trained_on.get("coverage", [])} or None
     expert: dict[str, list[dict]] = {}
     if labels is not None:
         import pyarrow.parquet as pq
@@ -73,7 +78,12 @@ def evaluate(checkpoint: Path, scenes: Sequence[EnvScene], out: Path, labels: Pa
     try:
         for i, scene in enumerate(scenes):
             episode = run_episode(
-                env, policy, scene, f"{i:04d}_{scene.scene_id}", expert.get(scene_sha256(scene), ())
+                env,
+                policy,
+                scene,
+                f"{i:04d}_{scene.scene_id}",
+                expert.get(scene_sha256(scene), ()),
+                coverage,
             )
             write_episode(out / episode.episode_id, episode)
             results.append((episode.success, episode.info["failure"]))

@@ -74,9 +74,13 @@ def scene_sha256(scene: EnvScene) -> str:
     return hashlib.sha256(json.dumps(described, sort_keys=True).encode()).hexdigest()
 
 
+def target_category(scene: EnvScene) -> str:
+    return next(o.category for o in scene.objects if o.name == scene.target)
+
+
 def _row(job: Job, outcome) -> dict:
     scene = job.scene
-    category = next(o.category for o in scene.objects if o.name == scene.target)
+    category = target_category(scene)
     return {
         "scene_id": scene.scene_id,
         "source": scene.source,
@@ -143,12 +147,51 @@ def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str], observatio
     ]
 
 
+def current(row: dict, observation: str = "rgbd") -> bool:
+    """Whether a label row answers for today's primitives: the primitive's current version, planned
+    from ``observation`` (the state ablation's rows say what a planner with the simulator's state
+    would do, not what one with the cameras does)."""
+    primitive = PRIMITIVES.get(row["primitive"])
+    return (
+        primitive is not None
+        and row.get("primitive_version") == primitive.version
+        and row.get("observation", "rgbd") == observation
+    )
+
+
+def current_rows(tables: Sequence[Sequence[dict]], observation: str = "rgbd") -> tuple[list[dict], int]:
+    """The rows of several label tables that answer for today's primitives seen through
+    ``observation``, each (scene, primitive) once; and how many rows were left out as stale."""
+    rows: dict[tuple, dict] = {}
+    stale = 0
+    for table in tables:
+        for row in table:
+            if current(row, observation):
+                rows.setdefault((row["scene_sha256"], row["primitive"]), row)
+            else:
+                stale += 1
+    return list(rows.values()), stale
+
+
 def per_tag_selection(scenes: Sequence[EnvScene], n: int) -> list[EnvScene]:
     """The first ``n`` scenes holding each rare tag and the first ``n`` nominal ones, in source order."""
     chosen: set[int] = set()
     for tag in (*RARE_TAGS, "nominal"):
         holding = [i for i, s in enumerate(scenes) if s.tags.get(tag)]
         chosen.update(holding[:n])
+    return [scenes[i] for i in sorted(chosen)]
+
+
+def per_cell_selection(scenes: Sequence[EnvScene], n: int, categories: Sequence[str]) -> list[EnvScene]:
+    """The first ``n`` feasible scenes of every (tag, target category) cell, rare tags and nominal, for
+    the target categories named, in source order: enough scenes per cell for a within-category table.
+    Cells with fewer than ``n`` scenes are left out (too few to report on their own)."""
+    chosen: set[int] = set()
+    for category in categories:
+        in_category = [i for i, s in enumerate(scenes) if target_category(s) == category and feasible(s)]
+        for tag in (*RARE_TAGS, "nominal"):
+            cell = [i for i in in_category if scenes[i].tags.get(tag)]
+            chosen.update(cell[:n] if len(cell) >= n else [])
     return [scenes[i] for i in sorted(chosen)]
 
 
@@ -172,11 +215,14 @@ def label(
     progress: bool = True,
     per_tag: int | None = None,
     observation: str = "rgbd",
+    per_cell: tuple[int, Sequence[str]] | None = None,
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
     ``per_tag``: only the first N scenes holding each rare tag and the first N nominal ones (in
-    source order), for a success table per tag without labelling every scene."""
+    source order), for a success table per tag without labelling every scene; ``per_cell`` (N,
+    categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
+    selection when both are given)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
     from tqdm import tqdm
@@ -188,8 +234,14 @@ def label(
         scenes = load_scenes(source, split)
     except (OSError, ValueError) as exc:
         raise LabelError(f"{source}: {str(exc).splitlines()[0]}") from None
-    if per_tag is not None:
-        scenes = per_tag_selection(scenes, per_tag)
+    if per_tag is not None or per_cell is not None:
+        chosen = {id(s) for s in per_tag_selection(scenes, per_tag)} if per_tag is not None else set()
+        if per_cell is not None:
+            unknown = sorted(set(per_cell[1]) - {target_category(s) for s in scenes})
+            if unknown:
+                raise LabelError(f"--categories: no target of category {', '.join(unknown)} in {source}")
+            chosen |= {id(s) for s in per_cell_selection(scenes, *per_cell)}
+        scenes = [s for s in scenes if id(s) in chosen]
     scenes = scenes[:limit] if limit is not None else scenes
     jobs = label_jobs(scenes, list(primitives or PRIMITIVES), observation)
     log = out.with_name(out.name + ".rows.jsonl")

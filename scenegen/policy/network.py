@@ -54,6 +54,7 @@ class PrimitivePolicy(nn.Module):
         super().__init__()
         self.primitives = list(primitives)
         self.width = width
+        self.trained_on: dict = {}  # the checkpoint's training summary (data, coverage, losses)
         self.features = nn.Sequential(
             nn.Conv2d(5, width // 2, 5, stride=2, padding=2),
             nn.ReLU(),
@@ -101,4 +102,5 @@ class PrimitivePolicy(nn.Module):
             raise ValueError(f"{folder}: not a policy checkpoint ({str(exc).splitlines()[0]})") from None
         model = cls(config["primitives"], config["width"])
         model.load_state_dict(state)
+        model.trained_on = config.get("training", {})
         return model.eval()

@@ -15,10 +15,10 @@ parameters, and an executor, which moves the grip site through those parameters 
   the visible points' centroid along it (the mass leans to the wide end).
 - ``push_from_edge_then_grasp``: the closed hand pushes a target near a table edge 10 cm inward, low
   on its body so it slides rather than tips; then a top grasp from a new observation.
-- ``pull_out_then_grasp``: the closed hand, horizontal, comes in low beside the target, round to its
-  far side, and drags it 15 cm towards the robot; then a top grasp from a new observation. Measured
-  on a can under the shelf's board: the hand reaches the board's front but pushes the can 2 cm away
-  instead of hooking it (work in progress, issue 19).
+- ``pull_out_then_grasp``: the hand comes in horizontally, low on the target's body, from the freest
+  side facing the robot, closes across the body and drags the target 20 cm back along its approach (a
+  centimetre off the table), lets go and top-grasps it in the open from a new observation. Under a
+  shelf's board a grasp lifted where the target stands lifts it into the board.
 
 ``PRIMITIVES`` maps a name to its :class:`Primitive`; ``version`` changes whenever a primitive's
 behaviour does (expert labels are cached by it).
@@ -128,7 +128,9 @@ def _clearance(view: TargetView, direction: np.ndarray) -> float:
     return float(along[in_corridor].min()) if in_corridor.any() else np.inf
 
 
-def plan_side_grasp(view: TargetView) -> dict:
+def plan_side_grasp(view: TargetView, max_angle: float = np.pi / 2) -> dict:
+    """Approach directions within ``max_angle`` of the robot's side (the hand cannot come from behind
+    the target); the freest one, ties to the one facing the robot."""
     t = view.target
     centre = t.centre[:2]
     to_robot = np.asarray(view.robot_base) - centre
@@ -136,7 +138,7 @@ def plan_side_grasp(view: TargetView) -> dict:
     for k in range(SIDE_DIRECTIONS):
         angle = 2 * np.pi * k / SIDE_DIRECTIONS
         direction = np.array([np.cos(angle), np.sin(angle)])
-        if direction @ to_robot < 0:  # the hand cannot come from behind the target
+        if direction @ to_robot < np.cos(max_angle) * np.linalg.norm(to_robot) - 1e-9:
             continue
         clearance = min(_clearance(view, direction), 1.0)
         score = clearance + 0.05 * direction @ to_robot / np.linalg.norm(to_robot)
@@ -237,46 +239,40 @@ def _regrasp(env, step) -> None:
 
 
 # --------------------------------------------------------------------------- pull out, then grasp
+PULL = 0.20  # m the target is dragged towards the robot: a can under the board's middle comes clear
+PULL_RISE = 0.01  # m the held target is raised while dragged: it slides without scraping the table
+RETREAT = 0.08  # m the open hand backs off along the pull before rising
+
+
 def plan_pull_out(view: TargetView) -> dict:
     """A target under an overhang or hemmed in by clutter: a hand from above meets the board or the
-    neighbours. The closed hand, held horizontally and pointing away from the robot (it is thinner
-    that way than upright: it fits under a shelf's board), comes in low beside the target on its
-    freer side, goes round to its far side and drags it ``PULL`` towards the robot (the open side);
-    then a top grasp from a new observation."""
-    t = view.target
-    centre = t.centre[:2]
-    towards_robot = np.asarray(view.robot_base) - centre
-    towards_robot /= np.linalg.norm(towards_robot)
-    side = np.array([-towards_robot[1], towards_robot[0]])
-    if _clearance(view, -side) > _clearance(view, side):
-        side = -side
-    radius = 0.5 * t.extent[1]
-    z = t.bottom_z + 0.03  # the horizontal hand's lower edge stays off the table
-    # come down well in front of the target (clear of an overhang's front edge), then in, low
-    entry = centre + towards_robot * (radius + 0.16) + side * (radius + 0.05)
-    beside = centre + side * (radius + 0.05) - towards_robot * (radius + 0.04)
-    behind = centre - towards_robot * (radius + 0.03)
-    end = behind + towards_robot * PULL
-    return {
-        "entry": [float(entry[0]), float(entry[1]), float(z)],
-        "beside": [float(beside[0]), float(beside[1]), float(z)],
-        "behind": [float(behind[0]), float(behind[1]), float(z)],
-        "position": [float(end[0]), float(end[1]), float(z)],
-        "pointing": [float(-towards_robot[0]), float(-towards_robot[1])],
-    }
+    neighbours, and a grasp lifted where the target stands lifts it into the board. The hand comes in
+    horizontally, low on the target's body, from the freest side that faces the robot (a shelf is open
+    towards the robot), closes across the body and drags it ``PULL`` back along its approach, a
+    centimetre off the table; it lets go, backs off, and a top grasp from a new observation takes the
+    target in the open. The horizontal hand is 6.5 cm thick: it fits under a shelf's board above a
+    low body, where an upright hand (20 cm tall across its fingers' travel) does not."""
+    side = plan_side_grasp(view, max_angle=np.pi / 4)
+    back = -np.asarray(side["approach"])
+    end = np.asarray(side["position"]) + np.array([*(back * PULL), PULL_RISE])
+    side["pulled"] = [float(v) for v in end]
+    return side
 
 
-PULL = 0.15  # m the target is dragged towards the robot
-
-
-@primitive("pull_out_then_grasp", version=1)(plan_pull_out)
+@primitive("pull_out_then_grasp", version=2)(plan_pull_out)
 def execute_pull_out(env, params: dict, step=None) -> None:
-    rotation = side_grasp(np.asarray(params["pointing"]))
-    entry = np.asarray(params["entry"])
+    rotation = side_grasp(np.asarray(params["approach"]))
+    standoff = np.asarray(params["standoff"])
     here, _ = grip_site(env)
-    servo(env, [entry[0], entry[1], max(here[2], entry[2] + 0.15)], rotation, CLOSE, 100, step=step)
-    for key, speed in (("entry", 0.4), ("beside", 0.3), ("behind", 0.3), ("position", 0.3)):
-        servo(env, params[key], rotation, CLOSE, max_steps=80, speed=speed, step=step)
+    servo(env, [standoff[0], standoff[1], max(here[2], standoff[2] + 0.15)], rotation, OPEN, 100, step=step)
+    servo(env, standoff, rotation, OPEN, max_steps=150, step=step)
+    servo(env, params["position"], rotation, OPEN, max_steps=80, speed=0.4, step=step)
+    hold(env, CLOSE, CLOSE_STEPS, step=step)
+    servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
+    hold(env, OPEN, CLOSE_STEPS, step=step)
     here, _ = grip_site(env)
-    servo(env, here + np.array([0, 0, 0.12]), rotation, OPEN, max_steps=40, step=step)
+    back = -np.asarray(params["approach"]) * RETREAT
+    servo(env, here + np.array([back[0], back[1], 0.0]), rotation, OPEN, max_steps=40, step=step)
+    here, _ = grip_site(env)
+    servo(env, here + np.array([0.0, 0.0, 0.15]), rotation, OPEN, max_steps=60, step=step)
     _regrasp(env, step)

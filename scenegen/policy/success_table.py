@@ -115,15 +115,21 @@ def markdown_table(rows: Sequence[dict], min_cell: int = MIN_CELL) -> str:
             entries.append(f"{mark}{cell.rate:.2f}{mark} [{lo:.2f}, {hi:.2f}] n={cell.n}")
         lines.append(f"| {tag} | " + " | ".join(entries) + " |")
     by_category = success_cells(rows, by_category=True)
+    best_in_category = best_primitives(by_category)
     lines += ["", "| tag | category | " + " | ".join(primitives) + " |", "|---" * (len(primitives) + 2) + "|"]
     for tag, category in sorted({key[:2] for key in by_category}):
         n = max(by_category.get((tag, category, p), Cell(0, 0)).n for p in primitives)
         if n < min_cell:
             continue
-        rates = [by_category.get((tag, category, p)) for p in primitives]
-        lines.append(
-            f"| {tag} | {category} | "
-            + " | ".join(f"{c.rate:.2f} n={c.n}" if c else "" for c in rates)
-            + " |"
-        )
+        top = best_in_category[(tag, category)][0]
+        entries = []
+        for p in primitives:
+            cell = by_category.get((tag, category, p))
+            mark = "**" if p == top else ""
+            entries.append(
+                f"{mark}{cell.rate:.2f}{mark} [{cell.interval[0]:.2f}, {cell.interval[1]:.2f}]"
+                if cell
+                else ""
+            )
+        lines.append(f"| {tag} | {category} (n={n}) | " + " | ".join(entries) + " |")
     return "\n".join(lines) + "\n"

@@ -21,7 +21,7 @@ import torch
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
 from scenegen.env.scenes import EnvScene, load_scenes
-from scenegen.policy.labels import CAMERA_SIZE, scene_sha256
+from scenegen.policy.labels import CAMERA_SIZE, current, scene_sha256
 from scenegen.policy.network import PrimitivePolicy, observation_tensor
 from scenegen.policy.primitives import PRIMITIVES
 
@@ -31,13 +31,15 @@ CAMERA = "front"  # the policy looks through the front camera, at the labeller's
 @dataclass
 class Examples:
     """``x`` (N, 5, H, W) observations, ``y`` (N, P) success bits, ``known`` (N, P) which bits were
-    labelled; ``scenes`` the N scenes, ``primitives`` the P names."""
+    labelled (by the primitive's current version); ``scenes`` the N scenes, ``primitives`` the P
+    names."""
 
     x: np.ndarray
     y: np.ndarray
     known: np.ndarray
     scenes: list[EnvScene]
     primitives: list[str]
+    stale: int = 0  # label rows left out: an older primitive version or the state ablation
 
 
 def policy_input(obs: dict, target_id: int) -> np.ndarray:
@@ -64,14 +66,19 @@ def labelled_examples(
     primitives = list(PRIMITIVES)
     by_sha: dict[str, EnvScene] = {}
     bits: dict[str, dict[str, bool]] = {}
+    stale = 0
     for scenes_path, labels_path in sources:
         for scene in load_scenes(scenes_path, split):
             by_sha.setdefault(scene_sha256(scene), scene)
         for row in pq.read_table(labels_path).to_pylist():
+            if not current(row):
+                stale += 1
+                continue
             bits.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
     shas = [sha for sha in by_sha if sha in bits]
     if not shas:
-        raise ValueError("no labelled scene: the labels name none of the given scenes (same split?)")
+        why = f" ({stale} rows of older primitive versions or another observation: relabel)" if stale else ""
+        raise ValueError(f"no labelled scene: the labels name none of the given scenes (same split?){why}")
     own = env is None
     env = env or SceneEnv(by_sha[shas[0]], cameras=[CAMERA], camera_size=CAMERA_SIZE, render_each_step=False)
     try:
@@ -81,7 +88,18 @@ def labelled_examples(
             env.close()
     y = np.array([[bits[sha].get(p, False) for p in primitives] for sha in shas], dtype=np.float32)
     known = np.array([[p in bits[sha] for p in primitives] for sha in shas])
-    return Examples(x, y, known, [by_sha[sha] for sha in shas], primitives)
+    return Examples(x, y, known, [by_sha[sha] for sha in shas], primitives, stale)
+
+
+def coverage(examples: Examples) -> dict[tuple[str, str], int]:
+    """Labelled examples per (tag, target category) ('nominal' for a scene holding no rare tag): what
+    the failure labeller's ``data_coverage`` rule compares against."""
+    counts: dict[tuple[str, str], int] = {}
+    for scene in examples.scenes:
+        category = next(o.category for o in scene.objects if o.name == scene.target)
+        for tag in [t for t, held in scene.tags.items() if held and t != "nominal"] or ["nominal"]:
+            counts[(tag, category)] = counts.get((tag, category), 0) + 1
+    return counts
 
 
 def train_policy(
@@ -127,6 +145,8 @@ def train_policy(
         "batch_size": batch_size,
         "seed": seed,
         "examples": len(examples.scenes),
+        "stale_label_rows": examples.stale,
+        "coverage": sorted([tag, category, n] for (tag, category), n in coverage(examples).items()),
         "effective_shares": sampler.effective_shares(),
         "losses": losses,
         "cpu_seconds": round(time.process_time() - started, 2),

@@ -70,3 +70,33 @@ def test_the_state_ablation_is_labelled_apart_and_recorded(labelled: Path, demo_
     assert [r["observation"] for r in pq.read_table(out).to_pylist()] == ["state"]
     with pytest.raises(LabelError, match="--observation x"):
         label(demo_batch, out, ["top_grasp"], observation="x", progress=False)
+
+
+def test_per_cell_fills_each_reportable_cell_of_the_named_categories_in_source_order():
+    from scenegen.env.scenes import load_scenes
+    from scenegen.policy.labels import feasible, per_cell_selection, target_category
+    from scenegen.policy.success_table import MIN_CELL
+    from scenegen.schema.condition import RARE_TAGS
+
+    scenes = load_scenes(Path("assets/reference/reference.parquet"), "train")
+    chosen = per_cell_selection(scenes, MIN_CELL, ["can"])
+    assert {target_category(s) for s in chosen} == {"can"} and all(feasible(s) for s in chosen)
+    order = {id(s): i for i, s in enumerate(scenes)}
+    assert [order[id(s)] for s in chosen] == sorted(order[id(s)] for s in chosen)
+    for tag in (*RARE_TAGS, "nominal"):
+        available = [s for s in scenes if target_category(s) == "can" and feasible(s) and s.tags.get(tag)]
+        picked = [s for s in chosen if s.tags.get(tag)]
+        if len(available) >= MIN_CELL:  # the first MIN_CELL of the cell, perhaps more through other tags
+            assert all(s in picked for s in available[:MIN_CELL]), tag
+        else:  # too few to report alone: only scenes chosen for another tag hold it
+            assert all(any(s.tags.get(t) for t in RARE_TAGS if t != tag) for s in picked), tag
+
+
+def test_per_cell_needs_its_categories_and_names_unknown_ones(tmp_path: Path, capsys):
+    out = tmp_path / "x.parquet"
+    assert main(["label", "assets/reference/reference.parquet", "--out", str(out), "--per-cell", "3"]) == 2
+    assert "--per-cell N and --categories go together" in capsys.readouterr().err
+    argv = ["label", "assets/reference/reference.parquet", "--out", str(out), "--per-cell", "3"]
+    assert main([*argv, "--categories", "can", "teapot"]) == 2
+    assert "--categories: no target of category teapot" in capsys.readouterr().err
+    assert not out.exists()

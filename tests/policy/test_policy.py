@@ -80,3 +80,37 @@ def test_a_closed_loop_evaluation_writes_episodes_with_failure_labels(examples, 
 def test_a_missing_checkpoint_is_named(tmp_path: Path):
     with pytest.raises(ValueError, match="not a policy checkpoint"):
         PrimitivePolicy.load(tmp_path)
+
+
+def test_only_labels_of_the_current_primitives_seen_through_the_cameras_train_it(demo_batch, tmp_path: Path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from scenegen.policy.labels import scene_sha256
+    from scenegen.policy.train import current, labelled_examples
+
+    sha = scene_sha256(batch_scenes(demo_batch)[0])
+    row = {"scene_sha256": sha, "primitive": "top_grasp", "success": True, "observation": "rgbd"}
+    version = PRIMITIVES["top_grasp"].version
+    rows = [
+        row | {"primitive_version": version - 1},
+        row | {"primitive_version": version, "observation": "state"},
+    ]
+    assert not any(map(current, rows)) and current(row | {"primitive_version": version})
+    pq.write_table(pa.Table.from_pylist(rows), tmp_path / "stale.parquet")
+    with pytest.raises(ValueError, match="2 rows of older primitive versions or another observation"):
+        labelled_examples([(demo_batch, tmp_path / "stale.parquet")], split=None)
+
+
+def test_the_checkpoint_records_its_coverage_for_the_failure_labeller(examples, tmp_path: Path):
+    from scenegen.policy.evaluate import evaluate
+    from scenegen.policy.train import coverage, train_policy
+
+    counts = coverage(examples)
+    assert sum(counts.values()) >= len(examples.scenes)  # a scene counts once per tag it holds
+    train_policy(examples, tmp_path / "ckpt", steps=2, batch_size=2)
+    loaded = PrimitivePolicy.load(tmp_path / "ckpt").trained_on["coverage"]
+    assert {(tag, category): n for tag, category, n in loaded} == counts
+    PrimitivePolicy(["top_grasp", "teleport"]).save(tmp_path / "other")
+    with pytest.raises(ValueError, match="chooses primitives this code lacks \\(teleport\\)"):
+        evaluate(tmp_path / "other", examples.scenes[:1], tmp_path / "episodes")

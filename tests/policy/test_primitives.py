@@ -129,3 +129,12 @@ def test_the_state_ablation_sees_the_whole_target_and_is_never_mixed_with_rgbd(e
     recorder = EpisodeRecorder(env, "rgbd_episode", observation_kind="rgbd")
     with pytest.raises(ValueError, match="the episode records 'rgbd'"):
         run_primitive(env, "top_grasp", recorder, observation_kind="state")
+
+
+def test_a_can_under_the_shelfs_board_is_pulled_out_then_lifted(env):
+    env.reset_to(can_at(0.17, 0.27, under_the_board=True))
+    outcome, params = run_primitive(env, "pull_out_then_grasp")
+    towards_robot = np.asarray(params["pulled"][:2]) - np.asarray(params["position"][:2])
+    assert np.linalg.norm(towards_robot) == pytest.approx(0.20, abs=1e-6) and towards_robot[0] < 0
+    assert outcome.success, (outcome, params)
+    assert env.target_pose()[0][0] < 0.11 - 0.03  # it came up in front of the board (x from 0.11)

@@ -61,5 +61,32 @@ def test_only_a_tag_whose_best_beats_nominals_best_by_15_points_counts():
 def test_the_markdown_table_marks_the_best_and_shows_big_cells_only():
     text = markdown_table(LABELS)
     assert "| under_overhang | 0.67 [" not in text and "**0.67**" in text
-    assert "| toppled | mug |" in text
-    assert "| toppled | mug |" not in markdown_table(LABELS, min_cell=31)
+    assert "| toppled | mug (n=30) |" in text and "**0.47** [0.30, 0.64]" in text  # the cell's best
+    assert "| toppled | mug" not in markdown_table(LABELS, min_cell=31)
+
+
+def test_tables_combine_once_per_scene_and_primitive_leaving_stale_rows_out(tmp_path, capsys):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from scenegen.cli import main
+    from scenegen.policy.labels import current_rows
+    from scenegen.policy.primitives import PRIMITIVES
+
+    version = PRIMITIVES["top_grasp"].version
+    labelled = [
+        row | {"scene_sha256": f"s{i}", "primitive_version": version, "observation": "rgbd"}
+        for i, row in enumerate(rows(None, "mug", "top_grasp", 27, 30))
+    ]
+    stale = [row | {"primitive_version": version - 1} for row in labelled[:5]]
+    state = [row | {"observation": "state", "success": False} for row in labelled[:5]]
+    combined, left_out = current_rows([labelled, labelled[:10], stale, state])
+    assert len(combined) == 30 and left_out == 10
+    assert current_rows([state], "state")[0] == state
+    for name, table in (("a", labelled[:10]), ("b", labelled + stale + state)):
+        pq.write_table(pa.Table.from_pylist(table), tmp_path / f"{name}.parquet")
+    assert main(["success-table", str(tmp_path / "a.parquet"), str(tmp_path / "b.parquet")]) == 0
+    out, err = capsys.readouterr()
+    assert "| nominal | **0.90** [0.74, 0.97] n=30 |" in out and "left out 10 rows" in err
+    assert main(["success-table", str(tmp_path / "a.parquet"), "--observation", "state"]) == 2
+    assert "no rows of the current primitives (state observation)" in capsys.readouterr().err
