@@ -97,7 +97,8 @@ def add_commands(sub) -> None:
     ev.add_argument("--n", type=int, default=50, help="scenes to run (default 50)")
     ev.add_argument("--outside-panels", action="store_true", help="skip the transfer experiment's panels")
     ev.add_argument("--labels", type=Path, help="expert labels of these scenes (for grasp-choice failures)")
-    ev.add_argument("--out", type=Path, required=True)
+    ev.add_argument("--out", type=Path, required=True, help="folder for the episodes and summary.json")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(run=policy_eval)
 
 
@@ -195,6 +196,7 @@ def policy_train(args: argparse.Namespace) -> int:
 def policy_eval(args: argparse.Namespace) -> int:
     from scenegen.env.scenes import load_scenes
     from scenegen.policy.evaluate import evaluate
+    from scenegen.policy.task import feasible
 
     try:
         scenes = load_scenes(args.scenes, None if args.split == "all" else args.split)
@@ -204,7 +206,8 @@ def policy_eval(args: argparse.Namespace) -> int:
             panels = load_panels()
             taken = {f"reference_{i:06d}" for i in panels["rare_layouts"] + panels["common"]}
             scenes = [s for s in scenes if s.scene_id not in taken]
-        summary = evaluate(args.checkpoint, scenes[: args.n], args.out, args.labels)
+        scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
+        summary = evaluate(args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet)
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
     print(

@@ -52,8 +52,16 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
     return episode
 
 
-def evaluate(checkpoint: Path, scenes: Sequence[EnvScene], out: Path, labels: Path | None = None) -> dict:
+def evaluate(
+    checkpoint: Path,
+    scenes: Sequence[EnvScene],
+    out: Path,
+    labels: Path | None = None,
+    progress: bool = False,
+) -> dict:
     """Run the policy on every feasible scene; write episodes under ``out`` and ``summary.json``."""
+    from tqdm import tqdm
+
     from scenegen.env.robosuite_env import SceneEnv
 
     policy = PrimitivePolicy.load(checkpoint)
@@ -76,7 +84,7 @@ def evaluate(checkpoint: Path, scenes: Sequence[EnvScene], out: Path, labels: Pa
     )
     results = []
     try:
-        for i, scene in enumerate(scenes):
+        for i, scene in enumerate(tqdm(scenes, desc="episodes", disable=not progress)):
             episode = run_episode(
                 env,
                 policy,

@@ -114,3 +114,33 @@ def test_the_checkpoint_records_its_coverage_for_the_failure_labeller(examples, 
     PrimitivePolicy(["top_grasp", "teleport"]).save(tmp_path / "other")
     with pytest.raises(ValueError, match="chooses primitives this code lacks \\(teleport\\)"):
         evaluate(tmp_path / "other", examples.scenes[:1], tmp_path / "episodes")
+
+
+def test_label_train_and_eval_run_end_to_end_from_the_command_line(demo_batch, tmp_path: Path, capsys):
+    from scenegen.cli import main
+    from scenegen.env.episodes import read_episode
+
+    labels, ckpt, episodes = tmp_path / "labels.parquet", tmp_path / "ckpt", tmp_path / "episodes"
+    argv = ["label", str(demo_batch), "--out", str(labels), "--limit", "2", "--quiet"]
+    assert main([*argv, "--primitives", "top_grasp", "toppled_grasp"]) == 0
+    argv = ["policy", "train", "--data", str(demo_batch), str(labels), "--out", str(ckpt)]
+    assert main([*argv, "--steps", "5", "--batch-size", "2"]) == 0
+    assert "2 examples, 5 steps" in capsys.readouterr().out
+    argv = ["policy", "eval", "--checkpoint", str(ckpt), "--scenes", str(demo_batch), "--split", "all"]
+    assert main([*argv, "--n", "1", "--labels", str(labels), "--out", str(episodes), "--quiet"]) == 0
+    summary = json.loads((episodes / "summary.json").read_text())
+    (folder,) = [p for p in episodes.iterdir() if p.is_dir()]
+    episode = read_episode(folder)
+    assert summary["episodes"] == 1 and summary["success_rate"] == float(episode.success)
+    assert 1 <= episode.info["attempts"] <= 3 and (episode.success or episode.info["failure"])
+    argv = [
+        "policy",
+        "eval",
+        "--checkpoint",
+        str(tmp_path),
+        "--scenes",
+        str(demo_batch),
+        "--out",
+        str(episodes),
+    ]
+    assert main(argv) == 2 and "not a policy checkpoint" in capsys.readouterr().err
