@@ -24,7 +24,10 @@ def add_commands(sub) -> None:
     lab.add_argument("--out", type=Path, required=True, help="labels Parquet file to write")
     lab.add_argument("--primitives", nargs="+", help="primitives to run (default: all)")
     lab.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
-    lab.add_argument("--limit", type=int, help="label only the first N scenes")
+    lab.add_argument("--limit", type=int, help="label only the first N feasible scenes")
+    lab.add_argument(
+        "--outside-panels", action="store_true", help="leave out the transfer experiment's panel layouts"
+    )
     lab.add_argument(
         "--per-tag", type=int, help="only the first N scenes holding each rare tag and N nominal ones"
     )
@@ -123,6 +126,7 @@ def label(args: argparse.Namespace) -> int:
             per_tag=args.per_tag,
             observation=args.observation,
             per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
+            outside_panels=args.outside_panels,
         )
     except (LabelError, OSError) as exc:
         return fail(first_line(exc))
@@ -201,10 +205,9 @@ def policy_eval(args: argparse.Namespace) -> int:
     try:
         scenes = load_scenes(args.scenes, None if args.split == "all" else args.split)
         if args.outside_panels:
-            from scenegen.policy.panels import load_panels
+            from scenegen.policy.panels import panel_scene_ids
 
-            panels = load_panels()
-            taken = {f"reference_{i:06d}" for i in panels["rare_layouts"] + panels["common"]}
+            taken = panel_scene_ids()
             scenes = [s for s in scenes if s.scene_id not in taken]
         scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
         summary = evaluate(args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet)

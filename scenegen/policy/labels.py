@@ -28,6 +28,7 @@ from pathlib import Path
 
 from scenegen.env.scenes import EnvScene, load_scenes
 from scenegen.policy.observation import KINDS
+from scenegen.policy.panels import panel_scene_ids
 from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.task import feasible
 from scenegen.schema.condition import RARE_TAGS
@@ -216,13 +217,15 @@ def label(
     per_tag: int | None = None,
     observation: str = "rgbd",
     per_cell: tuple[int, Sequence[str]] | None = None,
+    outside_panels: bool = False,
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
     ``per_tag``: only the first N scenes holding each rare tag and the first N nominal ones (in
     source order), for a success table per tag without labelling every scene; ``per_cell`` (N,
     categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
-    selection when both are given)."""
+    selection when both are given); ``outside_panels``: leave out the transfer experiment's panel
+    layouts. ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
     from tqdm import tqdm
@@ -242,6 +245,10 @@ def label(
                 raise LabelError(f"--categories: no target of category {', '.join(unknown)} in {source}")
             chosen |= {id(s) for s in per_cell_selection(scenes, *per_cell)}
         scenes = [s for s in scenes if id(s) in chosen]
+    if outside_panels:
+        taken = panel_scene_ids()
+        scenes = [s for s in scenes if s.scene_id not in taken]
+    scenes = [s for s in scenes if feasible(s)]
     scenes = scenes[:limit] if limit is not None else scenes
     jobs = label_jobs(scenes, list(primitives or PRIMITIVES), observation)
     log = out.with_name(out.name + ".rows.jsonl")

@@ -60,3 +60,10 @@ def write_panels(path: Path = PANELS_FILE) -> dict:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(panels, indent=1) + "\n")
     return panels
+
+
+def panel_scene_ids(path: Path = PANELS_FILE) -> set[str]:
+    """The scene ids (``reference_NNNNNN``) of every layout on either panel: what a run that must not
+    touch the transfer experiment's panels leaves out."""
+    panels = load_panels(path)
+    return {f"reference_{i:06d}" for i in panels["rare_layouts"] + panels["common"]}

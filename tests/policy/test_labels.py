@@ -100,3 +100,15 @@ def test_per_cell_needs_its_categories_and_names_unknown_ones(tmp_path: Path, ca
     assert main([*argv, "--categories", "can", "teapot"]) == 2
     assert "--categories: no target of category teapot" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_outside_panels_labels_held_out_scenes_that_no_panel_holds(tmp_path: Path):
+    from scenegen.policy.panels import load_panels, panel_scene_ids
+
+    first = min(load_panels()["rare_layouts"] + load_panels()["common"])
+    out = tmp_path / "heldout.parquet"
+    argv = ["label", "assets/reference/reference.parquet", "--out", str(out), "--split", "heldout"]
+    assert main([*argv, "--outside-panels", "--limit", "1", "--primitives", "top_grasp", "--quiet"]) == 0
+    (row,) = pq.read_table(out).to_pylist()
+    assert row["scene_id"] not in panel_scene_ids() and "on_floor" not in row["tags"]
+    assert f"reference_{first:06d}" in panel_scene_ids()
