@@ -66,6 +66,14 @@ def grip_site(env) -> tuple[np.ndarray, np.ndarray]:
     return data.site_xpos[site].copy(), data.site_xmat[site].reshape(3, 3).copy()
 
 
+def finger_gap(env) -> float:
+    """How far apart the fingers are (m, 0 when closed on nothing), from the finger joints
+    (proprioception): a hand commanded closed that stays apart holds something."""
+    robot = env.robots[0]
+    qpos = env.sim.data._data.qpos[robot._ref_gripper_joint_pos_indexes["right"]]
+    return float(np.abs(qpos).sum())
+
+
 def servo(
     env,
     position,

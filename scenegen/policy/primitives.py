@@ -17,8 +17,9 @@ parameters, and an executor, which moves the grip site through those parameters 
   on its body so it slides rather than tips; then a top grasp from a new observation.
 - ``pull_out_then_grasp``: the hand comes in horizontally, low on the target's body, from the freest
   side facing the robot, closes across the body and drags the target 20 cm back along its approach (a
-  centimetre off the table), lets go and top-grasps it in the open from a new observation. Under a
-  shelf's board a grasp lifted where the target stands lifts it into the board.
+  centimetre off the table); if the fingers still hold it (proprioception) it is lifted there, else
+  the hand lets go and top-grasps it in the open from a new observation. Under a shelf's board a
+  grasp lifted where the target stands lifts it into the board.
 
 ``PRIMITIVES`` maps a name to its :class:`Primitive`; ``version`` changes whenever a primitive's
 behaviour does (expert labels are cached by it).
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.policy.motion import CLOSE, OPEN, down_grasp, grip_site, hold, servo, side_grasp
+from scenegen.policy.motion import CLOSE, OPEN, down_grasp, finger_gap, grip_site, hold, servo, side_grasp
 from scenegen.policy.observation import TargetView, observe
 
 MAX_GRASP_WIDTH = 0.07  # m: what the 8 cm hand spans with a margin for the estimate's error
@@ -249,8 +250,9 @@ def plan_pull_out(view: TargetView) -> dict:
     neighbours, and a grasp lifted where the target stands lifts it into the board. The hand comes in
     horizontally, low on the target's body, from the freest side that faces the robot (a shelf is open
     towards the robot), closes across the body and drags it ``PULL`` back along its approach, a
-    centimetre off the table; it lets go, backs off, and a top grasp from a new observation takes the
-    target in the open. The horizontal hand is 6.5 cm thick: it fits under a shelf's board above a
+    centimetre off the table. Still held (the fingers stay apart), it is lifted there; lost on the way,
+    the hand lets go, backs off, and a top grasp from a new observation takes the target in the open
+    (the issue's re-observation; a held target needs none). The horizontal hand is 6.5 cm thick: it fits under a shelf's board above a
     low body, where an upright hand (20 cm tall across its fingers' travel) does not."""
     side = plan_side_grasp(view, max_angle=np.pi / 4)
     back = -np.asarray(side["approach"])
@@ -259,7 +261,10 @@ def plan_pull_out(view: TargetView) -> dict:
     return side
 
 
-@primitive("pull_out_then_grasp", version=2)(plan_pull_out)
+HELD_GAP = 0.01  # m: fingers commanded closed but this far apart hold the target
+
+
+@primitive("pull_out_then_grasp", version=3)(plan_pull_out)
 def execute_pull_out(env, params: dict, step=None) -> None:
     rotation = side_grasp(np.asarray(params["approach"]))
     standoff = np.asarray(params["standoff"])
@@ -269,7 +274,12 @@ def execute_pull_out(env, params: dict, step=None) -> None:
     servo(env, params["position"], rotation, OPEN, max_steps=80, speed=0.4, step=step)
     hold(env, CLOSE, CLOSE_STEPS, step=step)
     servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
-    hold(env, OPEN, CLOSE_STEPS, step=step)
+    if finger_gap(env) > HELD_GAP:  # still held, out in the open: lift it as it is
+        here, _ = grip_site(env)
+        servo(env, here + np.array([0.0, 0.0, LIFT]), rotation, CLOSE, max_steps=60, speed=0.4, step=step)
+        hold(env, CLOSE, HOLD_STEPS, step=step)
+        return
+    hold(env, OPEN, CLOSE_STEPS, step=step)  # lost on the way: let go, back off, grasp it anew
     here, _ = grip_site(env)
     back = -np.asarray(params["approach"]) * RETREAT
     servo(env, here + np.array([back[0], back[1], 0.0]), rotation, OPEN, max_steps=40, step=step)
