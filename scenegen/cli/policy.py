@@ -86,6 +86,7 @@ def add_commands(sub) -> None:
     tr.add_argument("--batch-size", type=int, default=32)
     tr.add_argument("--alpha", type=float, default=1.0, help="weight of the synthetic sources (default 1)")
     tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
     tr.set_defaults(run=policy_train)
     ev = cmds.add_parser(
@@ -177,7 +178,7 @@ def policy_train(args: argparse.Namespace) -> int:
         return fail("--steps and --batch-size must be at least 1, --alpha at least 0")
     split = None if args.split == "all" else args.split
     try:
-        examples = labelled_examples([tuple(pair) for pair in args.data], split)
+        examples = labelled_examples([tuple(pair) for pair in args.data], split, progress=not args.quiet)
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
     summary = train_policy(
@@ -188,6 +189,7 @@ def policy_train(args: argparse.Namespace) -> int:
         args.alpha,
         args.seed,
         data=data_description(args.data),
+        progress=not args.quiet,
     )
     first, last = summary["losses"][:20], summary["losses"][-20:]
     print(

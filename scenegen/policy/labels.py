@@ -129,7 +129,10 @@ def _run(job: Job) -> dict:
 def _close_worker_env() -> None:
     global _ENV
     if _ENV is not None:
-        _ENV.close()
+        try:
+            _ENV.close()
+        except Exception:  # noqa: BLE001 - at exit EGL may already be torn down; the process ends anyway
+            pass
         _ENV = None
 
 

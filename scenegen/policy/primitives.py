@@ -252,8 +252,9 @@ def plan_pull_out(view: TargetView) -> dict:
     towards the robot), closes across the body and drags it ``PULL`` back along its approach, a
     centimetre off the table. Still held (the fingers stay apart), it is lifted there; lost on the way,
     the hand lets go, backs off, and a top grasp from a new observation takes the target in the open
-    (the issue's re-observation; a held target needs none). The horizontal hand is 6.5 cm thick: it fits under a shelf's board above a
-    low body, where an upright hand (20 cm tall across its fingers' travel) does not."""
+    (a held target needs no new observation). The horizontal hand is 6.5 cm thick: it fits under a
+    shelf's board above a low body, where an upright hand (20 cm tall across its fingers' travel)
+    does not."""
     side = plan_side_grasp(view, max_angle=np.pi / 4)
     back = -np.asarray(side["approach"])
     end = np.asarray(side["position"]) + np.array([*(back * PULL), PULL_RISE])

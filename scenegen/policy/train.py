@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
@@ -56,7 +57,7 @@ def render_observation(env, scene: EnvScene) -> np.ndarray:
 
 
 def labelled_examples(
-    sources: Sequence[tuple[Path, Path]], split: str | None = "train", env=None
+    sources: Sequence[tuple[Path, Path]], split: str | None = "train", env=None, progress: bool = False
 ) -> Examples:
     """Examples of every labelled scene of every (scenes, labels) pair."""
     import pyarrow.parquet as pq
@@ -82,7 +83,8 @@ def labelled_examples(
     own = env is None
     env = env or SceneEnv(by_sha[shas[0]], cameras=[CAMERA], camera_size=CAMERA_SIZE, render_each_step=False)
     try:
-        x = np.stack([render_observation(env, by_sha[sha]) for sha in shas])
+        frames = tqdm(shas, desc="observations", disable=not progress)
+        x = np.stack([render_observation(env, by_sha[sha]) for sha in frames])
     finally:
         if own:
             env.close()
@@ -112,6 +114,7 @@ def train_policy(
     lr: float = 1e-3,
     recipe: MixtureRecipe | None = None,
     data: dict | None = None,
+    progress: bool = False,
 ) -> dict:
     """Train a :class:`PrimitivePolicy` for ``steps`` batches drawn by the mixture; save it to ``out``
     (safetensors + config.json with the losses and the recipe's effective shares)."""
@@ -131,7 +134,7 @@ def train_policy(
     x, y = torch.from_numpy(examples.x), torch.from_numpy(examples.y)
     known = torch.from_numpy(examples.known.astype(np.float32))
     losses, started = [], time.process_time()
-    for batch in order:
+    for batch in tqdm(order, desc="training", disable=not progress):
         index = torch.from_numpy(batch)
         logits = model(x[index])
         per_bit = torch.nn.functional.binary_cross_entropy_with_logits(logits, y[index], reduction="none")
