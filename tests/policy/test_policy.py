@@ -144,3 +144,13 @@ def test_label_train_and_eval_run_end_to_end_from_the_command_line(demo_batch, t
         str(episodes),
     ]
     assert main(argv) == 2 and "not a policy checkpoint" in capsys.readouterr().err
+
+
+def test_the_committed_baseline_loads_and_names_the_labels_it_learnt_from():
+    from scenegen.core.files import sha256_file
+
+    policy = PrimitivePolicy.load(Path("assets/policy/baseline"))
+    assert set(policy.primitives) <= set(PRIMITIVES)
+    (source,) = policy.trained_on["data"]["sources"]
+    assert sha256_file(Path(source["labels"])) == source["labels_sha256"]
+    assert policy.trained_on["examples"] == 282 and policy.trained_on["stale_label_rows"] == 0
