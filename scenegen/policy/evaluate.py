@@ -14,7 +14,7 @@ import torch
 from scenegen.env.episodes import EpisodeRecorder, write_episode
 from scenegen.env.scenes import EnvScene
 from scenegen.policy.failures import failure_label
-from scenegen.policy.labels import CAMERA_SIZE, scene_sha256
+from scenegen.policy.labels import CAMERA_SIZE, scene_sha256, target_category
 from scenegen.policy.network import PrimitivePolicy
 from scenegen.policy.primitives import PRIMITIVES
 from scenegen.policy.rollout import run_primitive
@@ -30,7 +30,7 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
     recorder = EpisodeRecorder(env, episode_id, observation_kind="rgbd")
     recorder.episode.scene |= {
         "tags": [t for t, held in scene.tags.items() if held and t != "nominal"],
-        "target_category": next(o.category for o in scene.objects if o.name == scene.target),
+        "target_category": target_category(scene),
     }
     tried: set[str] = set()
     success = False

@@ -76,6 +76,7 @@ def scene_sha256(scene: EnvScene) -> str:
 
 
 def target_category(scene: EnvScene) -> str:
+    """The category of the scene's target object (``can``, ``mug``, ...)."""
     return next(o.category for o in scene.objects if o.name == scene.target)
 
 

@@ -22,7 +22,7 @@ from tqdm import tqdm
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
 from scenegen.env.scenes import EnvScene, load_scenes
-from scenegen.policy.labels import CAMERA_SIZE, current, scene_sha256
+from scenegen.policy.labels import CAMERA_SIZE, current, scene_sha256, target_category
 from scenegen.policy.network import PrimitivePolicy, observation_tensor
 from scenegen.policy.primitives import PRIMITIVES
 
@@ -98,7 +98,7 @@ def coverage(examples: Examples) -> dict[tuple[str, str], int]:
     the failure labeller's ``data_coverage`` rule compares against."""
     counts: dict[tuple[str, str], int] = {}
     for scene in examples.scenes:
-        category = next(o.category for o in scene.objects if o.name == scene.target)
+        category = target_category(scene)
         for tag in [t for t, held in scene.tags.items() if held and t != "nominal"] or ["nominal"]:
             counts[(tag, category)] = counts.get((tag, category), 0) + 1
     return counts
