@@ -66,15 +66,25 @@ def primitive(name: str, version: int):
     return register
 
 
-def _grasp_and_lift(env, position, rotation, step, approach=None) -> None:
-    """Approach (if given), move to the grasp pose open, close, lift ``LIFT`` and hold."""
+def _close_at(env, position, rotation, step, approach=None) -> None:
+    """Approach (if given), move to the grasp pose open and close the hand."""
     if approach is not None:
         servo(env, approach, rotation, OPEN, max_steps=100, step=step)
     servo(env, position, rotation, OPEN, max_steps=80, speed=0.4, step=step)
     hold(env, CLOSE, CLOSE_STEPS, step=step)
+
+
+def _lift_and_hold(env, rotation, step) -> None:
+    """Raise the closed hand ``LIFT`` from where it is and hold it there."""
     here, _ = grip_site(env)
     servo(env, here + np.array([0.0, 0.0, LIFT]), rotation, CLOSE, max_steps=60, speed=0.4, step=step)
     hold(env, CLOSE, HOLD_STEPS, step=step)
+
+
+def _grasp_and_lift(env, position, rotation, step, approach=None) -> None:
+    """Approach (if given), move to the grasp pose open, close, lift ``LIFT`` and hold."""
+    _close_at(env, position, rotation, step, approach)
+    _lift_and_hold(env, rotation, step)
 
 
 # ------------------------------------------------------------------------------------------ top grasp
@@ -156,14 +166,20 @@ def plan_side_grasp(view: TargetView, max_angle: float = np.pi / 2) -> dict:
     }
 
 
-@primitive("side_grasp", version=1)(plan_side_grasp)
-def execute_side_grasp(env, params: dict, step=None) -> None:
+def _side_standoff(env, params: dict, step) -> np.ndarray:
+    """Rise, turn the hand horizontal above the stand-off point, come down beside the target; the
+    hand's rotation."""
     rotation = side_grasp(np.asarray(params["approach"]))
     standoff = np.asarray(params["standoff"])
     here, _ = grip_site(env)
-    # rise, turn the hand horizontal above the stand-off point, then come down beside the target
     servo(env, [standoff[0], standoff[1], max(here[2], standoff[2] + 0.15)], rotation, OPEN, 100, step=step)
     servo(env, standoff, rotation, OPEN, max_steps=150, step=step)
+    return rotation
+
+
+@primitive("side_grasp", version=1)(plan_side_grasp)
+def execute_side_grasp(env, params: dict, step=None) -> None:
+    rotation = _side_standoff(env, params, step)
     _grasp_and_lift(env, np.asarray(params["position"]), rotation, step)
 
 
@@ -267,18 +283,11 @@ HELD_GAP = 0.01  # m: fingers commanded closed but this far apart hold the targe
 
 @primitive("pull_out_then_grasp", version=3)(plan_pull_out)
 def execute_pull_out(env, params: dict, step=None) -> None:
-    rotation = side_grasp(np.asarray(params["approach"]))
-    standoff = np.asarray(params["standoff"])
-    here, _ = grip_site(env)
-    servo(env, [standoff[0], standoff[1], max(here[2], standoff[2] + 0.15)], rotation, OPEN, 100, step=step)
-    servo(env, standoff, rotation, OPEN, max_steps=150, step=step)
-    servo(env, params["position"], rotation, OPEN, max_steps=80, speed=0.4, step=step)
-    hold(env, CLOSE, CLOSE_STEPS, step=step)
+    rotation = _side_standoff(env, params, step)
+    _close_at(env, params["position"], rotation, step)
     servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
     if finger_gap(env) > HELD_GAP:  # still held, out in the open: lift it as it is
-        here, _ = grip_site(env)
-        servo(env, here + np.array([0.0, 0.0, LIFT]), rotation, CLOSE, max_steps=60, speed=0.4, step=step)
-        hold(env, CLOSE, HOLD_STEPS, step=step)
+        _lift_and_hold(env, rotation, step)
         return
     hold(env, OPEN, CLOSE_STEPS, step=step)  # lost on the way: let go, back off, grasp it anew
     here, _ = grip_site(env)
