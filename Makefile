@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep clean
+.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -65,6 +65,9 @@ bench-primitives: setup  ## CPU-s per primitive execution and per labelled scene
 
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py
+
+transfer: setup  ## the transfer experiment (pipelines/transfer.yaml; docs/transfer.md): assets/transfer/result
+	$(BIN)/scenegen experiment transfer
 
 sweep: setup  ## guidance sweep of the generator: runs/sweep/sweep.{md,png,json}
 	$(BIN)/scenegen sweep --workers 2

@@ -140,9 +140,35 @@ class _Audit:
         if transfer is not None:
             if transfer.recipe is not None and transfer.recipe not in {r.name for r in manifest.recipes}:
                 self.violation("transfer", "recipe", f"recipe {transfer.recipe!r} is not in the manifest")
-            else:
+            elif transfer.artifact is None or self.artifact(transfer.artifact, transfer.artifact_sha256):
                 self.report.verified.append(f"transfer: {transfer.status}, panel {transfer.panel}")
         return self.report
+
+    def artifact(self, location: str, expected: str | None) -> bool:
+        """The transfer experiment's artifact folder: inside the manifest's folder, and its files
+        hash to the recorded checksum."""
+        from scenegen.core.files import folder_sha256
+
+        folder = self.folder / location
+        if not inside(folder, self.folder) or not folder.is_dir():
+            self.violation(
+                "transfer", "artifact", f"artifact {location} is not a folder inside {self.folder}"
+            )
+            return False
+        try:
+            found = folder_sha256(folder)
+        except ValueError as exc:
+            self.violation("transfer", "artifact", str(exc))
+            return False
+        if found != expected:
+            self.violation(
+                "transfer",
+                "artifact_sha256",
+                f"the files of {location} hash to {found[:12]}, not {str(expected)[:12]}",
+            )
+            return False
+        self.report.verified.append(f"transfer: artifact {location} hashes to its recorded checksum")
+        return True
 
     # ------------------------------------------------------------------------ sources
 

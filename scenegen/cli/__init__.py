@@ -2,8 +2,8 @@
 
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
 (generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
-audit, manifest add), ``export.py`` (export) and ``policy.py`` (label); handlers call library
-functions with typed arguments.
+audit, manifest add), ``export.py`` (export), ``policy.py`` (label, success-table, policy) and
+``experiment.py`` (experiment transfer); handlers call library functions with typed arguments.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import data, export, generator, policy, scenes
+from scenegen.cli import data, experiment, export, generator, policy, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -35,6 +35,7 @@ examples:
   scenegen manifest add runs/demo    # into data_manifest.yaml, after auditing it
   scenegen export runs/demo --format webdataset --out runs/demo-wds
   scenegen label runs/demo --out runs/labels.parquet   # every grasp primitive per scene (docs/policy.md)
+  scenegen experiment transfer      # are generated rare scenes worth it in closed loop? (docs/transfer.md)
 """
 
 
@@ -48,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     generator.add_commands(sub)
     export.add_commands(sub)
     policy.add_commands(sub)
+    experiment.add_commands(sub)
     return parser
 
 

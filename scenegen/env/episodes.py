@@ -12,6 +12,7 @@ On disk an episode is a folder: ``episode.json`` (metadata, decisions' choices, 
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 from dataclasses import dataclass, field
@@ -116,8 +117,21 @@ class EpisodeRecorder:
         self.episode.info.update(info)
         return self.episode
 
+    def snapshot(self) -> Episode:
+        """The episode so far as :meth:`finish` would close it (its trace ends now), leaving the
+        record open: what a caller measures between two decisions."""
+        trace = {k: list(v) for k, v in self.episode.trace.items()}
+        if self.episode.length % self.episode.trace_every != 0:
+            for k, v in self._trace_row().items():
+                trace[k].append(v)
+        return dataclasses.replace(self.episode, trace=trace, info=dict(self.episode.info))
+
     def _trace_now(self) -> None:
-        env, trace = self.env, self.episode.trace
+        for k, v in self._trace_row().items():
+            self.episode.trace[k].append(v)
+
+    def _trace_row(self) -> dict:
+        env = self.env
         model, data = env.sim.model._model, env.sim.data._data
         robot = env.robots[0]
         target_pos, target_quat = env.target_pose()
@@ -128,14 +142,16 @@ class EpisodeRecorder:
                 target_contacts += 1
                 other = bodies[1] if bodies[0] == env.target_body_id else bodies[0]
                 robot_contacts += model.body(other).name.startswith(("robot0_", "gripper0_"))
-        trace["time"].append(float(data.time))
-        trace["robot_qpos"].append(data.qpos[robot._ref_joint_pos_indexes].copy())
-        trace["eef_pos"].append(data.site_xpos[robot.eef_site_id["right"]].copy())
-        trace["gripper_qpos"].append(data.qpos[robot._ref_gripper_joint_pos_indexes["right"]].copy())
-        trace["target_pos"].append(target_pos)
-        trace["target_quat"].append(target_quat)
-        trace["target_contacts"].append(target_contacts)
-        trace["robot_target_contacts"].append(robot_contacts)
+        return {
+            "time": float(data.time),
+            "robot_qpos": data.qpos[robot._ref_joint_pos_indexes].copy(),
+            "eef_pos": data.site_xpos[robot.eef_site_id["right"]].copy(),
+            "gripper_qpos": data.qpos[robot._ref_gripper_joint_pos_indexes["right"]].copy(),
+            "target_pos": target_pos,
+            "target_quat": target_quat,
+            "target_contacts": target_contacts,
+            "robot_target_contacts": robot_contacts,
+        }
 
 
 def write_episode(folder: Path, episode: Episode) -> Path:

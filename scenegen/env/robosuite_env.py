@@ -199,3 +199,19 @@ class SceneEnv(ManipulationEnv):
             self._renderer.close()
             self._renderer = None
         super().close()
+
+
+def close_at_exit(close) -> None:
+    """Run ``close`` (freeing an environment's GL context) at interpreter exit, before EGL's own
+    teardown. MuJoCo's EGL module registers ``eglTerminate`` with atexit when it opens its display,
+    at the first context; exit handlers run last-registered first, so a handler registered before
+    that would free its context on a terminated display (an EGLError printed at every worker's exit).
+    Opening the display first puts ``close`` ahead of it."""
+    import atexit
+    import os
+
+    if os.environ.get("MUJOCO_GL") == "egl":
+        from mujoco.egl import GLContext
+
+        GLContext(1, 1).free()
+    atexit.register(close)

@@ -299,12 +299,17 @@ class TransferOutcome(_Entry):
     note: str
     recipe: str | None = None
     metrics: dict = Field(default_factory=dict)
-    artifact: str | None = None
+    artifact: str | None = None  # the experiment's artifact folder, relative to the manifest
+    artifact_sha256: str | None = None  # core.files.folder_sha256 of that folder
 
     @model_validator(mode="after")
     def _measured_has_numbers(self):
-        if self.status == "measured" and (not self.metrics or self.recipe is None):
-            raise ValueError("a measured transfer outcome names its recipe and its metrics")
+        if self.status == "measured" and (
+            not self.metrics or (self.recipe is None and self.artifact is None)
+        ):
+            raise ValueError("a measured transfer outcome names its metrics and its recipe or artifact")
+        if (self.artifact is None) != (self.artifact_sha256 is None):
+            raise ValueError("an artifact and its artifact_sha256 come together")
         return self
 
 

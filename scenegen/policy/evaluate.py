@@ -35,7 +35,7 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
     tried: set[str] = set()
     success = False
     start = float(env.sim.data._data.time)
-    for _ in range(ATTEMPTS):
+    for _ in range(min(ATTEMPTS, len(policy.primitives))):  # each primitive at most once
         if float(env.sim.data._data.time) - start >= TIME_LIMIT:  # the task's time limit: no new attempt
             break
         obs = env.camera_observations()

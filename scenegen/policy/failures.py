@@ -40,6 +40,21 @@ def _mask_pixels(episode: Episode, target_id: int) -> int:
     return int(sum(np.count_nonzero(v == target_id) for k, v in first.items() if k.endswith("_segmentation")))
 
 
+def episode_features(episode: Episode, target_id: int) -> dict:
+    """What the rules read from an episode record, as plain numbers (a cache can keep them)."""
+    trace = {k: np.asarray(v) for k, v in episode.trace.items()}
+    lift = trace["target_pos"][:, 2] - trace["target_pos"][0, 2]
+    return {
+        "mask_pixels": _mask_pixels(episode, target_id),
+        "touched_target": bool(trace["robot_target_contacts"].max(initial=0) > 0),
+        "touched_other": bool(episode.info.get("robot_touched_other", False)),
+        "lift_max": float(lift.max(initial=0)),
+        "lift_min": float(lift.min(initial=0)),
+        "closest": float(np.linalg.norm(trace["eef_pos"] - trace["target_pos"], axis=1).min(initial=np.inf)),
+        "duration": float(trace["time"][-1] - trace["time"][0]),
+    }
+
+
 def failure_label(
     episode: Episode,
     target_id: int,
@@ -53,25 +68,37 @@ def failure_label(
     ``episode.scene`` (``tags``, ``target_category``)."""
     if episode.success:
         return ""
-    trace = {k: np.asarray(v) for k, v in episode.trace.items()}
-    touched_target = trace["robot_target_contacts"].max(initial=0) > 0
-    touched_anything = episode.info.get("robot_touched_other", False)
-    if _mask_pixels(episode, target_id) < MIN_MASK or (touched_anything and not touched_target):
+    return label_from_features(
+        episode_features(episode, target_id),
+        {d.choice.get("primitive") for d in episode.decisions},
+        expert,
+        episode.scene.get("tags") or ["nominal"],
+        episode.scene.get("target_category"),
+        coverage,
+    )
+
+
+def label_from_features(
+    features: Mapping,
+    chosen: set[str],
+    expert: Sequence[dict],
+    tags: Sequence[str],
+    category: str | None,
+    coverage: Mapping[tuple[str, str], int] | None = None,
+) -> str:
+    """The failure label of a failed episode from its :func:`episode_features`, the primitives it
+    chose, the scene's expert rows, its rare tags (``['nominal']`` for none) and target category."""
+    if features["mask_pixels"] < MIN_MASK or (features["touched_other"] and not features["touched_target"]):
         return "perception"
-    chosen = {d.choice.get("primitive") for d in episode.decisions}
     if any(row["success"] and row["primitive"] not in chosen for row in expert):
         return "grasp_choice"
-    lift = trace["target_pos"][:, 2] - trace["target_pos"][0, 2]
-    closest = np.linalg.norm(trace["eef_pos"] - trace["target_pos"], axis=1).min(initial=np.inf)
-    if not touched_target and closest > REACH:
+    if not features["touched_target"] and features["closest"] > REACH:
         return "control"
-    if touched_target and (lift.max(initial=0) >= SLIP_LIFT or lift.min(initial=0) <= -PUSHED_OFF):
+    moved = features["lift_max"] >= SLIP_LIFT or features["lift_min"] <= -PUSHED_OFF
+    if features["touched_target"] and moved:
         return "dynamics"
-    if coverage is not None:
-        tags = episode.scene.get("tags") or ["nominal"]
-        category = episode.scene.get("target_category")
-        if min(coverage.get((tag, category), 0) for tag in tags) < MIN_COVERAGE:
-            return "data_coverage"
-    if trace["time"][-1] - trace["time"][0] >= TIME_LIMIT:
+    if coverage is not None and min(coverage.get((tag, category), 0) for tag in tags) < MIN_COVERAGE:
+        return "data_coverage"
+    if features["duration"] >= TIME_LIMIT:
         return "timing"
     return "unknown"

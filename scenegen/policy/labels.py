@@ -16,7 +16,6 @@ observation) it already holds, from that log or from an existing ``out``, and ru
 
 from __future__ import annotations
 
-import atexit
 import hashlib
 import json
 import multiprocessing
@@ -109,7 +108,9 @@ def _init_worker() -> None:
     import torch
 
     torch.set_num_threads(1)
-    atexit.register(_close_worker_env)  # free the GL context before the interpreter goes
+    from scenegen.env.robosuite_env import close_at_exit
+
+    close_at_exit(_close_worker_env)  # free the GL context before the interpreter goes
 
 
 def _run(job: Job) -> dict:
@@ -230,13 +231,6 @@ def label(
     categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
     selection when both are given); ``outside_panels``: leave out the transfer experiment's panel
     layouts. ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled)."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-    from tqdm import tqdm
-
-    from scenegen.store.batch import atomic_write
-
-    out = Path(out)
     try:
         scenes = load_scenes(source, split)
     except (OSError, ValueError) as exc:
@@ -254,10 +248,38 @@ def label(
         scenes = [s for s in scenes if s.scene_id not in taken]
     scenes = [s for s in scenes if feasible(s)]
     scenes = scenes[:limit] if limit is not None else scenes
-    jobs = label_jobs(scenes, list(primitives or PRIMITIVES), observation)
+    rows, ran = label_scenes(scenes, out, primitives, observation, workers, progress)
+    return {"rows": len(rows), "ran": ran, "reused": len(rows) - ran, "out": str(out)}
+
+
+def label_scenes(
+    scenes: Sequence[EnvScene],
+    out: Path,
+    primitives: Sequence[str] | None = None,
+    observation: str = "rgbd",
+    workers: int = 1,
+    progress: bool = True,
+    keep: bool = False,
+    reuse: Sequence[Path] = (),
+) -> tuple[list[dict], int]:
+    """Label ``scenes`` (feasible ones) with every primitive (or those named) into ``out``; returns
+    their rows and how many were run now. ``keep``: ``out`` is a store that keeps every row it held
+    (a cache shared by several calls); otherwise it holds exactly these scenes' rows. ``reuse``: other
+    label files whose rows (same scene content, primitive, version and observation) count as done."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from tqdm import tqdm
+
+    from scenegen.store.batch import atomic_write
+
+    out = Path(out)
+    jobs = label_jobs([s for s in scenes if feasible(s)], list(primitives or PRIMITIVES), observation)
     log = out.with_name(out.name + ".rows.jsonl")
     out.parent.mkdir(parents=True, exist_ok=True)
     cache = _cached(out, log)
+    for path in reuse:
+        for key, row in _cached(Path(path), Path(path).with_name(Path(path).name + ".rows.jsonl")).items():
+            cache.setdefault(key, row)
     todo = [job for job in jobs if job.key not in cache]
     with open(log, "a") as sink:
         for row in tqdm(_execute(todo, workers), total=len(todo), disable=not progress, desc="label"):
@@ -265,11 +287,12 @@ def label(
             sink.flush()
             cache[_key(row)] = row
     rows = [{**cache[job.key], "observation": job.observation} for job in jobs]
+    stored = [cache[k] for k in sorted(cache)] if keep else rows
     buffer = pa.BufferOutputStream()
-    pq.write_table(pa.Table.from_pylist(rows), buffer)
+    pq.write_table(pa.Table.from_pylist(stored), buffer)
     atomic_write(out, buffer.getvalue().to_pybytes())
     log.unlink(missing_ok=True)
-    return {"rows": len(rows), "ran": len(todo), "reused": len(jobs) - len(todo), "out": str(out)}
+    return rows, len(todo)
 
 
 def _execute(jobs: list[Job], workers: int) -> Iterator[dict]:

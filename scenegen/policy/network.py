@@ -47,14 +47,30 @@ def observation_tensor(image: np.ndarray, depth: np.ndarray, seg: np.ndarray, ta
     return np.stack([cv2.resize(c, INPUT_SIZE, interpolation=cv2.INTER_AREA) for c in channels])
 
 
-class PrimitivePolicy(nn.Module):
-    """Conv(5->16->32->64, stride 2) + global average pool + linear head: (B, 5, H, W) -> (B, P)."""
+INPUTS = ("rgbd", "state")  # what the network reads: the camera crop, or the state ablation's features
 
-    def __init__(self, primitives: list[str], width: int = 32):
+
+class PrimitivePolicy(nn.Module):
+    """``rgbd``: Conv(5->16->32->64, stride 2) + global average pool + linear head: (B, 5, H, W) ->
+    (B, P). ``state`` (the ablation): an MLP over :func:`~scenegen.policy.observation.state_features`,
+    (B, STATE_SIZE) -> (B, P)."""
+
+    def __init__(self, primitives: list[str], width: int = 32, inputs: str = "rgbd"):
         super().__init__()
+        if inputs not in INPUTS:
+            raise ValueError(f"inputs {inputs!r}: choose one of {', '.join(INPUTS)}")
         self.primitives = list(primitives)
         self.width = width
+        self.inputs = inputs
         self.trained_on: dict = {}  # the checkpoint's training summary (data, coverage, losses)
+        if inputs == "state":
+            from scenegen.policy.observation import STATE_SIZE
+
+            self.features = nn.Sequential(
+                nn.Linear(STATE_SIZE, 2 * width), nn.ReLU(), nn.Linear(2 * width, 2 * width), nn.ReLU()
+            )
+            self.head = nn.Linear(2 * width, len(self.primitives))
+            return
         self.features = nn.Sequential(
             nn.Conv2d(5, width // 2, 5, stride=2, padding=2),
             nn.ReLU(),
@@ -88,6 +104,7 @@ class PrimitivePolicy(nn.Module):
             {k: v.contiguous() for k, v in self.state_dict().items()}, str(folder / "model.safetensors")
         )
         config = {"primitives": self.primitives, "width": self.width, "input_size": list(INPUT_SIZE)}
+        config["inputs"] = self.inputs
         (folder / "config.json").write_text(json.dumps(config | (extra or {}), indent=1) + "\n")
 
     @classmethod
@@ -100,7 +117,7 @@ class PrimitivePolicy(nn.Module):
             state = load_file(str(folder / "model.safetensors"))
         except (FileNotFoundError, ValueError, OSError) as exc:
             raise ValueError(f"{folder}: not a policy checkpoint ({str(exc).splitlines()[0]})") from None
-        model = cls(config["primitives"], config["width"])
+        model = cls(config["primitives"], config["width"], config.get("inputs", "rgbd"))
         model.load_state_dict(state)
         model.trained_on = config.get("training", {})
         return model.eval()

@@ -96,3 +96,55 @@ def observe_state(env) -> tuple[dict, TargetView]:
     points = np.concatenate(others) if others else np.zeros((0, 3))
     position, quat = env.target_pose()
     return {"target_pos": position, "target_quat": quat}, TargetView(estimate, points, base, closing)
+
+
+CATEGORIES = ("bottle", "bowl", "box", "can", "fork", "knife", "mug", "plate", "spoon")
+TABLE_TOP, TABLE_HALF = 0.8, (0.4, 0.5)  # m: the table top's height and half extents (x, y)
+STATE_SIZE = len(CATEGORIES) + 15
+
+
+def state_features(env) -> np.ndarray:
+    """The state-observation policy's input (``STATE_SIZE``,) float32, from the simulator's state: what
+    a perfect perception system would summarise, so a policy on it separates data value from learning
+    to see. Target category (one-hot); target position (x, y, height above the table); its up axis'
+    z (1 upright, 0 lying); distance to the nearest table edge; furniture above it (count, lowest
+    clearance); other objects within 10 and 20 cm and the nearest one's distance; the grip site
+    relative to the target; the fingers' opening; total light (ambient + diffuse)."""
+    model, data = env.sim.model._model, env.sim.data._data
+    scene = env.scene
+    category = next(o.category for o in scene.objects if o.name == scene.target)
+    position, quat = env.target_pose()
+    up = 1 - 2 * (quat[1] ** 2 + quat[2] ** 2)  # z of the body's z axis
+    edge = min(TABLE_HALF[0] - abs(position[0]), TABLE_HALF[1] - abs(position[1]))
+    above, clearance = 0, 1.0
+    for furniture in scene.furniture:
+        body = model.body(furniture.name).id
+        for g in np.nonzero(model.geom_bodyid == body)[0]:
+            centre, half = data.geom_xpos[g], model.geom_size[g]
+            bottom = centre[2] - half[2]
+            if np.linalg.norm(centre[:2] - position[:2]) < max(half[0], half[1]) and bottom > position[2]:
+                above += 1
+                clearance = min(clearance, bottom - position[2])
+    others = [data.xpos[model.body(o.name).id] for o in scene.objects if o.name != scene.target]
+    gaps = np.array([np.linalg.norm(p[:2] - position[:2]) for p in others]) if others else np.array([1.0])
+    hand, _ = grip_site(env)
+    robot = env.robots[0]
+    fingers = data.qpos[robot._ref_gripper_joint_pos_indexes["right"]]
+    light = sum(sum(lt.colour) * lt.intensity for lt in scene.lighting.lights) + sum(scene.lighting.ambient)
+    values = [
+        *(float(category == c) for c in CATEGORIES),
+        position[0],
+        position[1],
+        position[2] - TABLE_TOP,
+        up,
+        edge,
+        above,
+        clearance,
+        float((gaps < 0.1).sum()),
+        float((gaps < 0.2).sum()),
+        float(gaps.min()),
+        *(hand - position),
+        float(np.abs(fingers).sum()),
+        light,
+    ]
+    return np.asarray(values, dtype=np.float32)

@@ -41,6 +41,7 @@ class Examples:
     scenes: list[EnvScene]
     primitives: list[str]
     stale: int = 0  # label rows left out: an older primitive version or the state ablation
+    inputs: str = "rgbd"  # what x holds: camera crops, or the state ablation's features
 
 
 def policy_input(obs: dict, target_id: int) -> np.ndarray:
@@ -129,7 +130,7 @@ def train_policy(
         recipe = MixtureRecipe.seed_loss(sizes["real"], sizes["synthetic"], alpha)
     sampler = MixtureSampler(recipe, examples.scenes, num_samples=steps * batch_size, seed=seed)
     order = np.fromiter(iter(sampler), dtype=np.int64).reshape(steps, batch_size)
-    model = PrimitivePolicy(examples.primitives)
+    model = PrimitivePolicy(examples.primitives, inputs=examples.inputs)
     optimiser = torch.optim.Adam(model.parameters(), lr=lr)
     x, y = torch.from_numpy(examples.x), torch.from_numpy(examples.y)
     known = torch.from_numpy(examples.known.astype(np.float32))

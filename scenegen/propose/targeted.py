@@ -324,8 +324,15 @@ class TargetedProposer:
         """Drop unprotected objects whose footprint overlaps a protected (placed by a rule) one at about
         the same height; then, repeatedly, objects whose support is gone or was moved by a rule."""
         protected = [scene.objects[n] for n in scene.protected]
+        holding = set()  # what a protected object stands on, all the way down: it stays too
+        below = [o.support for o in protected]
+        while below:
+            support = below.pop()
+            if support in scene.objects and support not in holding:
+                holding.add(support)
+                below.append(scene.objects[support].support)
         for name, obj in list(scene.objects.items()):
-            if name in scene.protected:
+            if name in scene.protected or name in holding:
                 continue
             radius = footprint_radius(self.catalog.get(obj.asset), obj.resting_pose)
             for other in protected:

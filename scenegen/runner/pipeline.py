@@ -250,7 +250,10 @@ def _init_worker(config_json: str, pooled: bool = False, export: bool = True) ->
 
 def _work(proposal: SceneProposal) -> Outcome:
     config, catalog, export = _WORKER
-    return process_proposal(proposal, config, catalog, export)
+    try:
+        return process_proposal(proposal, config, catalog, export)
+    except StopIteration as exc:  # inside map() it would end the batch silently, as if out of proposals
+        raise RuntimeError(f"proposal {proposal.proposal_index}: StopIteration in a stage") from exc
 
 
 def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterator[SceneProposal]:

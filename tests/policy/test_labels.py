@@ -112,3 +112,27 @@ def test_outside_panels_labels_held_out_scenes_that_no_panel_holds(tmp_path: Pat
     (row,) = pq.read_table(out).to_pylist()
     assert row["scene_id"] not in panel_scene_ids() and "on_floor" not in row["tags"]
     assert f"reference_{first:06d}" in panel_scene_ids()
+
+
+def test_a_store_keeps_every_row_and_reuses_other_label_files(tmp_path: Path):
+    """``label_scenes(keep=True, reuse=...)``: rows of another label file with the same scene content,
+    primitive, version and observation count as done (nothing runs), and the store keeps every row it
+    was ever given."""
+    from scenegen.core.files import load_rows
+    from scenegen.env.scenes import reference_scene
+    from scenegen.policy.labels import label_scenes, scene_sha256
+
+    committed = Path("assets/policy/labels/per_tag40.parquet")
+    known = {r["scene_sha256"] for r in pq.read_table(committed).to_pylist()}
+    rows = [r for r in load_rows(Path("assets/reference/reference.parquet"), "train")]
+    scenes = [s for s in map(reference_scene, rows[:400]) if scene_sha256(s) in known][:3]
+    assert len(scenes) == 3
+    store = tmp_path / "store.parquet"
+    first, ran = label_scenes(scenes[:2], store, progress=False, keep=True, reuse=[committed])
+    assert ran == 0 and len(first) == 10
+    second, ran = label_scenes(scenes[2:], store, progress=False, keep=True, reuse=[committed])
+    assert ran == 0 and len(second) == 5
+    stored = pq.read_table(store).to_pylist()
+    assert {r["scene_sha256"] for r in first + second} <= {r["scene_sha256"] for r in stored}
+    by_key = {(r["scene_sha256"], r["primitive"]): r["success"] for r in pq.read_table(committed).to_pylist()}
+    assert all(by_key[(r["scene_sha256"], r["primitive"])] == r["success"] for r in first + second)

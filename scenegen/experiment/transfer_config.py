@@ -1,0 +1,153 @@
+"""The transfer experiment's configuration (``pipelines/transfer.yaml``; docs/transfer.md explains
+every key). Unknown keys, wrong types and out-of-range numbers are one-line errors naming the key."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from scenegen.policy.panels import PANEL_TAGS
+from scenegen.policy.primitives import PRIMITIVES
+
+ARMS = ("A", "A+", "B", "C", "D", "E")
+
+
+class TransferConfigError(ValueError):
+    """A transfer configuration that cannot run; the message names the file and key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Sizes(_Strict):
+    """Labelled layouts: ``a`` (arm A), ``a_plus`` (arm A+, A's plus more at the natural rate),
+    ``extra`` (the rare scenes C, D and E add to A)."""
+
+    a: int = Field(600, ge=1)
+    a_plus: int = Field(1000, ge=1)
+    extra: int = Field(400, ge=1)
+
+    @model_validator(mode="after")
+    def _order(self):
+        if self.a_plus < self.a:
+            raise ValueError(f"a_plus ({self.a_plus}) must be at least a ({self.a})")
+        return self
+
+
+class Training(_Strict):
+    """The same policy, gradient steps and batch size for every arm; ``seeds`` at the default alpha."""
+
+    steps: int = Field(500, ge=1)
+    batch_size: int = Field(32, ge=1)
+    lr: float = Field(1e-3, gt=0)
+    seeds: tuple[int, ...] = Field((0, 1, 2), min_length=1)
+
+
+class Generation(_Strict):
+    """How D and E make their scenes: ``recipe`` (the distributions the reference set came from),
+    ``diffusion`` (D's proposer settings: the default generator's, pipelines/demo.yaml) and
+    ``max_proposals`` per requested scene before a cell gives up."""
+
+    recipe: Path = Path("pipelines/reference.yaml")
+    diffusion: Path = Path("pipelines/demo.yaml")
+    max_proposals: int = Field(60, ge=1)
+    calibration_proposals: int = Field(100, ge=1)  # C's cost: the reference recipe's CPU-s per layout
+
+
+class Perturbation(_Strict):
+    """The shift the rare panel is also evaluated under: every light and the ambient term scaled."""
+
+    name: str = "dim_light"
+    light_scale: float = Field(0.35, gt=0, le=3)
+    arms: tuple[str, ...] = ("A+", "C", "D")
+
+
+class TransferConfig(_Strict):
+    name: str = "transfer"
+    seed: int = 20
+    reference: Path = Path("assets/reference/reference.parquet")
+    panels: Path = Path("assets/panels/panels.json")
+    rare_per_tag: int | None = Field(None, ge=1)  # None: the whole committed panel (25 per tag)
+    common: int | None = Field(None, ge=1)  # None: the whole common panel (100)
+    tags: tuple[str, ...] = PANEL_TAGS
+    primitives: tuple[str, ...] = tuple(PRIMITIVES)
+    sizes: Sizes = Sizes()
+    alpha: float = 1.0
+    alpha_sweep: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0)
+    training: Training = Training()
+    generation: Generation = Generation()
+    perturbation: Perturbation | None = Perturbation()
+    state_ablation: tuple[str, ...] = ("A+", "D")
+    bootstrap: int = Field(2000, ge=100)
+    workers: int = Field(2, ge=1)
+    label_store: Path = Path("assets/transfer/labels.parquet")
+    reuse_labels: tuple[Path, ...] = (  # label files of the recovery-task issue: their scenes count as done
+        Path("assets/policy/labels/per_tag40.parquet"),
+        Path("assets/policy/labels/cell_can.parquet"),
+        Path("assets/policy/labels/cell_box.parquet"),
+    )
+    path_store: Path = Path("assets/transfer/paths.jsonl")
+    cache: Path = Path("runs/transfer/cache")
+    out: Path = Path("assets/transfer/result")
+    manifest: Path | None = Path("data_manifest.yaml")
+
+    @field_validator("tags")
+    @classmethod
+    def _tags(cls, tags):
+        unknown = [t for t in tags if t not in PANEL_TAGS]
+        if unknown or not tags:
+            raise ValueError(f"{unknown or 'none'}: choose from {', '.join(PANEL_TAGS)}")
+        return tags
+
+    @field_validator("primitives")
+    @classmethod
+    def _primitives(cls, primitives):
+        unknown = [p for p in primitives if p not in PRIMITIVES]
+        if unknown or not primitives:
+            raise ValueError(f"{unknown or 'none'}: choose from {', '.join(PRIMITIVES)}")
+        return primitives
+
+    @field_validator("alpha", "alpha_sweep")
+    @classmethod
+    def _finite(cls, value):
+        values = value if isinstance(value, tuple) else (value,)
+        if not all(math.isfinite(v) and v >= 0 for v in values):
+            raise ValueError("alpha must be a finite number >= 0")
+        return value
+
+    @field_validator("state_ablation")
+    @classmethod
+    def _arms(cls, arms):
+        unknown = [a for a in arms if a not in ARMS]
+        if unknown:
+            raise ValueError(f"{unknown}: arms are {', '.join(ARMS)}")
+        return arms
+
+
+def load_transfer_config(path: Path | None, overrides: dict | None = None) -> TransferConfig:
+    """The configuration in ``path`` (None: the defaults) with top-level ``overrides``."""
+    raw: dict = {}
+    if path is not None:
+        path = Path(path)
+        try:
+            raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        except (OSError, UnicodeDecodeError) as exc:
+            raise TransferConfigError(
+                f"{path}: cannot read it as a text file ({exc.__class__.__name__})"
+            ) from None
+        except yaml.YAMLError as exc:
+            raise TransferConfigError(f"{path}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
+        if not isinstance(raw, dict):
+            raise TransferConfigError(f"{path}: a transfer configuration is a mapping of keys")
+    raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    try:
+        return TransferConfig.model_validate(raw)
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        where = ".".join(str(p) for p in error["loc"]) or "(top level)"
+        message = error["msg"].removeprefix("Value error, ")
+        raise TransferConfigError(f"{path or 'configuration'}: {where}: {message}"[:300]) from None

@@ -1,0 +1,61 @@
+"""Success rates with hierarchical bootstrap intervals: the training seed and the panel scene are both
+sources of variation, so each replicate resamples the seeds (with replacement) and, independently, the
+panel's scenes, and takes the mean success over the resampled (seed, scene) grid. A difference of two
+arms resamples the scenes once for both (the same panel: a paired comparison) and each arm's seeds on
+its own. Intervals are the replicates' 2.5 and 97.5 percentiles."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def success_grid(records: Sequence[dict], runs: Sequence[str], scene_ids: Sequence[str]) -> np.ndarray:
+    """(runs, scenes) 0/1 success of each run (one training seed of an arm) on each scene."""
+    index = {(r["policy"], r["scene_id"]): r["success"] for r in records}
+    missing = [(run, s) for run in runs for s in scene_ids if (run, s) not in index]
+    if missing:
+        raise ValueError(f"no episode of {missing[0][0]} on {missing[0][1]} ({len(missing)} missing)")
+    return np.array([[float(index[(run, s)]) for s in scene_ids] for run in runs])
+
+
+def _draws(rng: np.random.Generator, n: int, replicates: int) -> np.ndarray:
+    return rng.integers(0, n, size=(replicates, n))
+
+
+def _grid_means(grid: np.ndarray, seeds: np.ndarray, scenes: np.ndarray) -> np.ndarray:
+    # mean over the resampled seeds of the mean over the resampled scenes, per replicate
+    per_seed = np.stack([grid[:, s].mean(axis=1) for s in scenes])  # (replicates, runs)
+    return np.take_along_axis(per_seed, seeds, axis=1).mean(axis=1)
+
+
+def interval(grid: np.ndarray, replicates: int, seed: int) -> dict:
+    """Mean success of a (runs, scenes) grid and its 95 % hierarchical bootstrap interval."""
+    rng = np.random.default_rng(seed)
+    seeds = _draws(rng, grid.shape[0], replicates)
+    scenes = _draws(rng, grid.shape[1], replicates)
+    values = _grid_means(grid, seeds, scenes)
+    return _summary(grid.mean(), values, grid.shape)
+
+
+def difference(first: np.ndarray, second: np.ndarray, replicates: int, seed: int) -> dict:
+    """``first`` minus ``second`` (grids over the same scenes) and its paired 95 % interval."""
+    if first.shape[1] != second.shape[1]:
+        raise ValueError("a difference needs both arms on the same panel scenes")
+    rng = np.random.default_rng(seed)
+    scenes = _draws(rng, first.shape[1], replicates)
+    a = _grid_means(first, _draws(rng, first.shape[0], replicates), scenes)
+    b = _grid_means(second, _draws(rng, second.shape[0], replicates), scenes)
+    return _summary(first.mean() - second.mean(), a - b, first.shape)
+
+
+def _summary(mean: float, values: np.ndarray, shape: tuple) -> dict:
+    low, high = np.percentile(values, [2.5, 97.5])
+    return {
+        "mean": round(float(mean), 4),
+        "low": round(float(low), 4),
+        "high": round(float(high), 4),
+        "seeds": int(shape[0]),
+        "scenes": int(shape[1]),
+    }
