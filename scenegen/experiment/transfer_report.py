@@ -266,9 +266,10 @@ def plot(metrics: dict, size=(1200, 760)) -> bytes:
         )
     top3 = 420
     tags = list(next(iter(arms.values()))["per_tag"])
-    y_of = frame(
-        60, top3, w - 100, 290, "rare panel per tag (descriptive), one bar per arm: " + " ".join(arms)
-    )
+    y_of = frame(60, top3, w - 100, 290, "rare panel per tag (descriptive), one bar per arm:")
+    for i, arm in enumerate(arms):  # the legend: each arm's name in its colour
+        colour = _COLOURS[i % len(_COLOURS)]
+        cv2.putText(image, arm, (470 + 45 * i, top3 - 8), 0, 0.55, colour, 2, cv2.LINE_AA)
     group = (w - 100) // max(len(tags), 1)
     width = max((group - 20) // len(arms), 2)
     for t, tag in enumerate(tags):
