@@ -235,7 +235,8 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
 
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
-    resolved = yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+    # what decides the results (the worker count does not: the run's outputs do not depend on it)
+    resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
     if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
         raise TransferError(
             f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
@@ -280,7 +281,9 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
             folder = train_run(
                 run, config, scenes, labels, observations, workers, cache / "policies" / run["name"]
             )
-            policies[run["name"]] = PrimitivePolicy.load(folder)
+            policies[run["name"]] = policy = PrimitivePolicy.load(folder)
+            run["recipe"] = policy.trained_on["data"]["recipe"]  # the mixture it drew its batches by
+            run["effective_shares"] = policy.trained_on["effective_shares"]
         if lap("training"):
             return {}
         panels = panel_scenes(config)

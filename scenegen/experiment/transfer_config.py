@@ -133,6 +133,8 @@ def load_transfer_config(path: Path | None, overrides: dict | None = None) -> Tr
     raw: dict = {}
     if path is not None:
         path = Path(path)
+        if not path.is_file():
+            raise TransferConfigError(f"{path}: no such file; the default is pipelines/transfer.yaml")
         try:
             raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
         except (OSError, UnicodeDecodeError) as exc:

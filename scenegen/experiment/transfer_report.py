@@ -75,6 +75,8 @@ def compute_metrics(config: TransferConfig, all_runs: list[dict], panels: dict, 
         "arms": arms,
         "exploratory": {},
         "panels": {name: len(group) for name, group in ids.items()},
+        "panels_file": str(config.panels),
+        "default_alpha": config.alpha,
     }
     explore = metrics["exploratory"]
     for other in ("A", "B", "C", "E"):
@@ -317,27 +319,30 @@ def write_outcome(manifest_path: Path, out: Path, checksum: str, metrics: dict) 
     from scenegen.manifest.schema import TransferOutcome
 
     manifest = read_manifest(manifest_path)
-    runs = {r["arm"]: r for r in metrics["runs"] if r["inputs"] == "rgbd"}
-    arms = {
-        arm: {
+    first = {}  # each arm's first run at the default alpha: its mixture recipe
+    for r in metrics["runs"]:
+        if r["inputs"] == "rgbd":
+            first.setdefault((r["arm"], r["alpha"]), r)
+    arms = {}
+    for arm, m in metrics["arms"].items():
+        run = first[(arm, metrics["default_alpha"])]
+        arms[arm] = {
             "alpha": m["alpha"],
             "seeds": m["seeds"],
             "rare": m["rare"],
             "common": m["common"],
-            "recipe_of": runs[arm]["name"],
+            "recipe": run["recipe"],
+            "effective_shares": run["effective_shares"],
         }
-        for arm, m in metrics["arms"].items()
-    }
     outcome = TransferOutcome(
         status="measured",
         panel="simulated",
         note="Simulated stand-ins for real rare cases (panel_origin: reference): held-out reference layouts "
-        "committed in assets/panels/panels.json; never real. Full tables in the artifact's report.md.",
+        f"committed in {metrics['panels_file']}; never real. Full tables in the artifact's report.md.",
         metrics={
             "primary": metrics["primary"],
             "arms": arms,
-            "panels": metrics["panels"],
-            "panel_origin": "reference",
+            "panels": metrics["panels"] | {"file": metrics["panels_file"], "panel_origin": "reference"},
         },
         artifact=Path(os.path.relpath(out.resolve(), manifest_path.resolve().parent)).as_posix(),
         artifact_sha256=checksum,

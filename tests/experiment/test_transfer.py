@@ -101,7 +101,14 @@ def test_the_outcome_lands_in_the_manifest_and_audits_clean(tiny_run, capsys):
     assert transfer.status == "measured" and transfer.panel == "simulated"
     assert transfer.artifact_sha256 == folder_sha256(config.out) == metrics["artifact_sha256"]
     for arm in ("A", "A+", "B", "C", "D", "E"):
-        assert transfer.metrics["arms"][arm]["rare"]["mean"] == metrics["arms"][arm]["rare"]["mean"]
+        entry = transfer.metrics["arms"][arm]
+        assert entry["rare"]["mean"] == metrics["arms"][arm]["rare"]["mean"]
+        assert sum(entry["effective_shares"].values()) == pytest.approx(1.0)
+        assert [e["source"] for e in entry["recipe"]["entries"]][0] == "A"
+    d_shares = transfer.metrics["arms"]["D"]["effective_shares"]
+    assert d_shares == pytest.approx({"A": 0.5, "D": 0.5})  # alpha = 1: the seed's loss
+    assert transfer.metrics["arms"]["B"]["recipe"]["entries"][0]["tags"] == ["toppled", "near_edge"]
+    assert transfer.metrics["panels"]["panel_origin"] == "reference"
     report = audit(Path(config.manifest))
     assert not report.violations, report.violations
     assert any("artifact" in line and "checksum" in line for line in report.verified)
@@ -258,3 +265,13 @@ def test_shared_sequences_replay_what_a_live_episode_does(tiny_run):
         env.close()
     assert [d.choice["primitive"] for d in episode.decisions] == record["choices"]
     assert episode.success == record["success"]
+
+
+def test_the_command_answers_bad_input_in_one_line(tmp_path, capsys):
+    assert main(["experiment", "transfer", str(tmp_path / "missing.yaml")]) == 2
+    assert "missing.yaml: no such file" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("training: {steps: -1}\n")
+    assert main(["experiment", "transfer", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "training.steps" in err and len(err.strip().splitlines()) == 1
