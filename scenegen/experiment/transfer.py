@@ -302,7 +302,10 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
             if stop_after == f"evaluation:{number + 1}":
                 return {}
         lap("evaluation")
-    return finish(config, all_runs, panels, sources, timings)
+    log = cache / "timings.jsonl"  # wall seconds per stage of every invocation, for the report's cost
+    with open(log, "a") as sink:
+        sink.write(json.dumps({"config": config.name, "workers": config.workers, "seconds": timings}) + "\n")
+    return finish(config, all_runs, panels, sources, timings, len(store.entries))
 
 
 def _evaluate(policies, scenes, store, observations, variant, workers, progress) -> list[dict]:

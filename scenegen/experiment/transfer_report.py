@@ -154,6 +154,14 @@ def report(config: TransferConfig, metrics: dict) -> str:
             f"| {arm} | {m['alpha']:g} | {len(m['seeds'])} | {_fmt(m['rare'])} | {_fmt(m['common'])} "
             f"| {cost.get('cpu_s', '-')} | {cost.get('cpu_s_per_point') or '-'} |"
         )
+    shared = metrics["cost"].get("evaluation")
+    if shared:
+        lines += [
+            "",
+            f"Evaluation: {shared['episodes']} episodes; evaluated one policy at a time they would execute "
+            f"{shared['primitive_executions_unshared']} primitives, the shared store holds "
+            f"{shared['sequences_in_store']} measured sequences.",
+        ]
     tags = list(next(iter(arms.values()))["per_tag"])
     lines += [
         "",
@@ -289,12 +297,21 @@ def plot(metrics: dict, size=(1200, 760)) -> bytes:
     return png.tobytes()
 
 
-def finish(config: TransferConfig, all_runs: list[dict], panels: dict, sources: dict, timings: dict) -> dict:
+def finish(
+    config: TransferConfig, all_runs: list[dict], panels: dict, sources: dict, timings: dict, sequences: int
+) -> dict:
     """metrics.json, report.md, transfer.png and panels.json in the artifact folder; the manifest's
-    transfer outcome (when the configuration names a manifest). Returns the metrics."""
+    transfer outcome (when the configuration names a manifest). Returns the metrics. ``sequences``:
+    the primitive sequences the shared store holds for the evaluation."""
     out = Path(config.out)
-    metrics = compute_metrics(config, all_runs, panels, read_episodes(out))
+    records = read_episodes(out)
+    metrics = compute_metrics(config, all_runs, panels, records)
     metrics["cost"] = cost_lines(metrics, sources)
+    metrics["cost"]["evaluation"] = {  # what sharing saved: executions a per-policy evaluation runs
+        "episodes": len(records),
+        "primitive_executions_unshared": sum(len(r["choices"]) for r in records),
+        "sequences_in_store": sequences,
+    }
     metrics["runs"] = all_runs
     used = {name: [s.scene_id for s in group] for name, group in panels.items()}
     atomic_write(
