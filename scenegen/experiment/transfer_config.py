@@ -95,21 +95,14 @@ class TransferConfig(_Strict):
     out: Path = Path("assets/transfer/result")
     manifest: Path | None = Path("data_manifest.yaml")
 
-    @field_validator("tags")
+    @field_validator("tags", "primitives")
     @classmethod
-    def _tags(cls, tags):
-        unknown = [t for t in tags if t not in PANEL_TAGS]
-        if unknown or not tags:
-            raise ValueError(f"{unknown or 'none'}: choose from {', '.join(PANEL_TAGS)}")
-        return tags
-
-    @field_validator("primitives")
-    @classmethod
-    def _primitives(cls, primitives):
-        unknown = [p for p in primitives if p not in PRIMITIVES]
-        if unknown or not primitives:
-            raise ValueError(f"{unknown or 'none'}: choose from {', '.join(PRIMITIVES)}")
-        return primitives
+    def _known(cls, values, info):
+        allowed = PANEL_TAGS if info.field_name == "tags" else tuple(PRIMITIVES)
+        unknown = [v for v in values if v not in allowed]
+        if unknown or not values:
+            raise ValueError(f"{unknown or 'none'}: choose from {', '.join(allowed)}")
+        return values
 
     @field_validator("alpha", "alpha_sweep")
     @classmethod
