@@ -9,10 +9,10 @@ export MUJOCO_GL ?= egl
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev,export]'
+	$(BIN)/pip install --quiet -e '.[dev,export,ray]'
 	touch $@
 
-setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2)
+setup: $(BIN)/scenegen  ## create .venv with pinned dependencies (torch 2.13.0 CPU, mujoco 3.3.7, robosuite 1.5.2, ray 2.60.0)
 
 # lerobot (the LeRobot exporter) cannot be a pip extra: it declares torch<2.11 and diffusers<0.36, so
 # it goes in with --no-deps beside the tested versions of what its dataset code imports

@@ -17,3 +17,31 @@ def fail(message: str) -> int:
     """Print ``scenegen: error: MESSAGE`` on stderr (one line) and return the usage-error code."""
     print(f"scenegen: error: {message}", file=sys.stderr)
     return USAGE_ERROR
+
+
+def add_backend_arguments(parser) -> None:
+    """``--backend`` and ``--address``: where the per-scene work runs (scenegen/runner/executors.py)."""
+    parser.add_argument(
+        "--backend",
+        choices=("local", "ray"),
+        default="local",
+        help="local: this process or a spawn pool of --workers processes (default); ray: --workers Ray "
+        "actors, 1 CPU each (pip install 'scenegen[ray]'); this process still writes every file",
+    )
+    parser.add_argument(
+        "--address",
+        metavar="ADDR",
+        help="with --backend ray: join this Ray cluster ('auto', HOST:6379 or ray://HOST:10001) "
+        "instead of starting a local one (docs/scale.md)",
+    )
+
+
+def backend_from(args):
+    """The :class:`~scenegen.runner.executors.Backend` the arguments name; BackendError if they
+    cannot run here (Ray not installed, --address without --backend ray)."""
+    from scenegen.runner.executors import Backend, import_ray
+
+    backend = Backend(args.backend, args.address)
+    if backend.kind == "ray":
+        import_ray()  # fail before any work when Ray is missing
+    return backend

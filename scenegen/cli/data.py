@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import fail, first_line
+from scenegen.cli.common import add_backend_arguments, backend_from, fail, first_line
 
 
 def add_commands(sub) -> None:
@@ -29,7 +29,10 @@ def _add_reference(sub) -> None:
     ref.add_argument("--n", type=int, help="accepted layouts (overrides the recipe's n)")
     ref.add_argument("--seed", type=int, help="seed (overrides the recipe's seed)")
     ref.add_argument("--out", type=Path, default=Path("assets/reference/reference.parquet"))
-    ref.add_argument("--workers", type=int, default=1, help="processes for check/settle/tag (default 1)")
+    ref.add_argument(
+        "--workers", type=int, default=1, help="processes (or Ray actors) for check/settle/tag (default 1)"
+    )
+    add_backend_arguments(ref)
     ref.add_argument("--quiet", action="store_true", help="no progress bar")
     ref.add_argument(
         "--manifest",
@@ -145,16 +148,21 @@ def _add_reference_images(sub) -> None:
 def reference(args: argparse.Namespace) -> int:
     from scenegen.assets.catalog import CatalogError
     from scenegen.runner.config import ConfigError, load_pipeline
+    from scenegen.runner.executors import BackendError
 
     try:
+        backend = backend_from(args)
         config = load_pipeline(args.pipeline, {"n": args.n, "seed": args.seed, "render": False})
-    except (ConfigError, CatalogError) as exc:
+    except (ConfigError, CatalogError, BackendError) as exc:
         return fail(str(exc))
     if args.workers < 1:
         return fail(f"--workers {args.workers}: must be at least 1")
     from scenegen.data.reference import build_reference, read_reference, tag_rates
 
-    stats = build_reference(config, args.out, workers=args.workers, progress=not args.quiet)
+    try:
+        stats = build_reference(config, args.out, args.workers, not args.quiet, backend)
+    except BackendError as exc:
+        return fail(str(exc))
     table, _ = read_reference(args.out)
     print(f"{stats['rows']} layouts of {stats['proposals']} proposals -> {args.out}")
     print("tag rates: " + ", ".join(f"{t} {c} ({r:.1%})" for t, (c, r) in tag_rates(table).items()))

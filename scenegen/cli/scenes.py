@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import fail
+from scenegen.cli.common import add_backend_arguments, backend_from, fail
 
 
 def add_commands(sub) -> None:
@@ -38,7 +38,10 @@ def add_commands(sub) -> None:
         "generator (assets/generator); procedural = rejection sampling from the recipe's distributions; "
         "targeted = hand-written rules per required tag",
     )
-    gen.add_argument("--workers", type=int, default=1, help="processes for check/settle/render (default 1)")
+    gen.add_argument(
+        "--workers", type=int, default=1, help="processes (or Ray actors) for check/settle/render (default 1)"
+    )
+    add_backend_arguments(gen)
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.set_defaults(run=generate)
@@ -61,6 +64,7 @@ def add_commands(sub) -> None:
 def generate(args: argparse.Namespace) -> int:
     from scenegen.assets.catalog import CatalogError
     from scenegen.runner.config import ConfigError, load_pipeline
+    from scenegen.runner.executors import BackendError
 
     overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
     if args.no_render:
@@ -68,8 +72,9 @@ def generate(args: argparse.Namespace) -> int:
     if args.workers < 1:
         return fail(f"--workers {args.workers}: must be at least 1")
     try:
+        backend = backend_from(args)
         config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
-    except (ConfigError, CatalogError) as exc:
+    except (ConfigError, CatalogError, BackendError) as exc:
         return fail(str(exc))
     out = args.out or Path("runs") / config.name
     if config.render:
@@ -83,8 +88,8 @@ def generate(args: argparse.Namespace) -> int:
     from scenegen.store.batch import StoreError
 
     try:
-        summary = run_batch(config, out, workers=args.workers, progress=not args.quiet)
-    except StoreError as exc:
+        summary = run_batch(config, out, workers=args.workers, progress=not args.quiet, backend=backend)
+    except (StoreError, BackendError) as exc:
         return fail(str(exc))
     rejected = sum(summary.rejections.values())
     print(

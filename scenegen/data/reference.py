@@ -23,7 +23,7 @@ from scenegen.assets.catalog import load_catalog
 from scenegen.core.files import sha256_file
 from scenegen.propose.base import PROPOSERS
 from scenegen.runner.config import PipelineConfig
-from scenegen.runner.pipeline import ordered_outcomes
+from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes
 from scenegen.schema.condition import ROBOT_POSES, TAGS, TASKS, Condition
 from scenegen.schema.scene import SceneProposal
 from scenegen.tags.predicates import PREDICATE_VERSION
@@ -48,8 +48,11 @@ def _proposals(config: PipelineConfig) -> Iterator[SceneProposal]:
         yield from proposer.propose(request_for(config, index, catalog.categories), [index], config.seed)
 
 
-def build_reference(config: PipelineConfig, out: Path, workers: int = 1, progress: bool = True) -> dict:
-    """Generate ``config.n`` accepted reference layouts into the Parquet file ``out`` (atomically)."""
+def build_reference(
+    config: PipelineConfig, out: Path, workers: int = 1, progress: bool = True, backend: Backend = LOCAL
+) -> dict:
+    """Generate ``config.n`` accepted reference layouts into the Parquet file ``out`` (atomically),
+    with ``workers`` workers of ``backend``."""
     import pyarrow as pa
     import pyarrow.parquet as pq
     from tqdm import tqdm
@@ -58,7 +61,7 @@ def build_reference(config: PipelineConfig, out: Path, workers: int = 1, progres
         config = config.model_copy(update={"render": False})
     rows, rejections = [], Counter()
     bar = tqdm(total=config.n, desc=f"reference {config.name}", unit="layout", disable=not progress)
-    outcomes = ordered_outcomes(_proposals(config), config, workers, export=False)
+    outcomes = ordered_outcomes(_proposals(config), config, workers, export=False, backend=backend)
     proposals = 0
     try:
         for outcome in outcomes:

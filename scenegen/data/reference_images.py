@@ -45,7 +45,7 @@ def _command(n: int, out: Path, recipe: Path, reference: Path) -> str:
 def _reference_outcomes(config, n: int, workers: int) -> Iterator:
     """The first ``n`` accepted outcomes of the reference proposals, rendered."""
     from scenegen.data.reference import _proposals  # the reference set's own proposals, unchanged
-    from scenegen.runner.pipeline import ordered_outcomes
+    from scenegen.runner.executors import ordered_outcomes
 
     rendered = config.model_copy(update={"render": True})
     outcomes = ordered_outcomes(_proposals(config), rendered, workers, export=False)

@@ -116,7 +116,7 @@ def run_sweep(
 
     from scenegen.assets.catalog import load_catalog
     from scenegen.propose.diffusion import DiffusionProposer
-    from scenegen.runner.pipeline import ordered_outcomes
+    from scenegen.runner.executors import ordered_outcomes
 
     catalog = load_catalog()
     base = config.model_copy(update={"render": False})

@@ -288,7 +288,7 @@ def test_a_stored_record_has_the_features_of_its_parquet_row(reference):
     from scenegen.data.reference import request_for
     from scenegen.propose.base import PROPOSERS
     from scenegen.runner.config import load_pipeline
-    from scenegen.runner.pipeline import process_proposal
+    from scenegen.runner.process import process_proposal
 
     config = load_pipeline(RECIPE, {"n": N_REFERENCE})
     catalog = load_catalog()

@@ -81,7 +81,7 @@ def test_a_stored_record_scores_as_its_parquet_row(rows, scorer):
     from scenegen.data.reference import request_for
     from scenegen.propose.base import PROPOSERS
     from scenegen.runner.config import load_pipeline
-    from scenegen.runner.pipeline import process_proposal
+    from scenegen.runner.process import process_proposal
 
     _, heldout = rows
     config = load_pipeline(RECIPE)

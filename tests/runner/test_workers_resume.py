@@ -329,3 +329,48 @@ def test_rerun_with_other_settings_is_refused(
     assert captured.out == ""
     assert {**snapshot(out), "timings.json": (out / "timings.json").read_text()} == before
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == mtimes, "the batch was touched"
+
+
+# ---------------------------------------------------------------- the Ray backend
+
+
+def test_ray_backend_gives_the_local_pools_bytes(recipe: Path, reference: Path, tmp_path: Path):
+    """--backend ray (a local Ray cluster, 2 actors of 1 CPU) writes the local pool's batch byte for byte."""
+    pytest.importorskip("ray")  # the `ray` extra: CI installs it (make setup)
+    out = tmp_path / "batch"
+    run_to_completion([*generate_cmd(recipe, out, workers=2), "--backend", "ray"])
+    timings = json.loads((out / "timings.json").read_text())
+    assert (timings["backend"], timings["workers"]) == ("ray", 2)
+    assert_same_batch(out, reference)
+
+
+def test_sigkill_of_a_ray_batch_resumes_exactly(recipe: Path, reference: Path, tmp_path: Path):
+    pytest.importorskip("ray")
+    out = tmp_path / "batch"
+    cmd = [*generate_cmd(recipe, out, workers=2), "--backend", "ray"]
+    where = start_and_kill(cmd, lambda: count_rows(out / "index.jsonl") >= 2)
+    assert not where["finished_before_kill"], "the batch finished before it could be killed"
+    run_to_completion(cmd)
+    assert_same_batch(out, reference)
+    assert json.loads((out / "timings.json").read_text())["backend"] == "ray"
+
+
+def test_backend_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture):
+    recipe = small_recipe(tmp_path / "small.yaml")
+    args = ["generate", str(recipe), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main([*args, "--address", "auto"]) == USAGE_ERROR
+    err = capsys.readouterr().err
+    assert err.startswith(PREFIX) and "--backend ray" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_ray_backend_without_ray_says_how_to_install_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+):
+    monkeypatch.setitem(sys.modules, "ray", None)  # what `import ray` meets where it is not installed
+    recipe = small_recipe(tmp_path / "small.yaml")
+    code = main(["generate", str(recipe), "--out", str(tmp_path / "out"), "--backend", "ray", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == USAGE_ERROR and err.count("\n") == 1, err
+    assert "pip install 'scenegen[ray]'" in err
+    assert not (tmp_path / "out").exists()

@@ -95,7 +95,7 @@ def record(path: Path = PANEL_FILE) -> dict:
     from scenegen.data.reference import request_for
     from scenegen.propose.base import PROPOSERS
     from scenegen.runner.config import load_pipeline
-    from scenegen.runner.pipeline import process_proposal
+    from scenegen.runner.process import process_proposal
     from scenegen.settle.physics import settle
 
     config = load_pipeline(RECIPE, {"render": False})
