@@ -1,13 +1,22 @@
-"""Pipeline throughput: per-stage time, accepted scenes per second with 1 and 2 workers, acceptance
-by label, and wall time per accepted scene against that scene's own settle + render time.
+"""Pipeline throughput: accepted scenes per second, per-stage time and CPU per accepted scene, for the
+code at a baseline commit and the code here, with the local pool and with Ray.
 
-    .venv/bin/python benchmarks/pipeline_throughput.py [--pipeline pipelines/demo.yaml] [--n 48]
-        [--workers 1 2] [--no-render]
+    .venv/bin/python benchmarks/pipeline_throughput.py [--pipelines P ...] [--n 48] [--workers 1 2]
+        [--ray-cpus 2] [--baseline 83efef1 | --no-baseline] [--no-ray]
 
-Every configuration runs the same recipe and seed in the same invocation (the 1-worker run is the
-baseline the others are compared with) into a temporary directory, through `run_batch`, start-up of
-the worker processes included. Stage seconds are measured inside the stage (time.perf_counter) and
-summed over workers; "build" includes MuJoCo's compile. Prints a table and saves JSON.
+Every configuration runs the same recipe, seed and n in the same invocation, each in a fresh
+process (`run_batch` into a temporary directory, start-up of the worker processes included):
+- ``baseline``: the code of the ``--baseline`` commit (default 83efef1, where the throughput issue
+  was measured), extracted with `git archive` and run from there with the same virtual environment,
+  on that commit's own copy of the recipe;
+- ``current``: this checkout, local pool, for each ``--workers``;
+- ``ray``: this checkout with ``--backend ray`` on a local cluster of ``--ray-cpus`` CPUs, the
+  cluster started before the clock starts (its start is reported separately).
+CPU seconds "all processes" are those of the coordinator and every process under it (pool workers,
+Ray's raylet, GCS and actors), sampled from /proc every 0.2 s, over the batch only. "own s+r" is the
+accepted scenes' settle + render CPU seconds measured inside the workers (time.process_time; the
+baseline has only its in-stage wall times, a slight over-estimate of its own CPU, which flatters its
+ratio). Prints tables and saves JSON.
 """
 
 from __future__ import annotations
@@ -16,79 +25,225 @@ import argparse
 import json
 import os
 import platform
+import subprocess
+import sys
+import tarfile
 import tempfile
+import threading
+import time
 from pathlib import Path
 
-from scenegen.runner.config import load_pipeline
-from scenegen.runner.pipeline import STAGES, run_batch
+ROOT = Path(__file__).resolve().parents[1]
+STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
+TICK = os.sysconf("SC_CLK_TCK")
 
 
-def measure(config, workers: int) -> dict:
+# ------------------------------------------------------------------------------ one measurement
+
+
+class TreeCpu:
+    """CPU seconds of this process and every live descendant, sampled every ``period`` seconds.
+
+    A process that exits between two samples loses at most ``period`` of its CPU time."""
+
+    def __init__(self, period: float = 0.2):
+        self.period, self.last, self._stop = period, {}, threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _children(self) -> dict[int, int]:
+        parents = {}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                text = stat.read_text()
+            except OSError:
+                continue
+            fields = text[text.rfind(")") + 2 :].split()
+            parents[int(stat.parent.name)] = (int(fields[1]), int(fields[11]) + int(fields[12]))
+        tree, frontier = {}, {os.getpid()}
+        while frontier:
+            frontier = {pid for pid, (ppid, _) in parents.items() if ppid in frontier and pid not in tree}
+            tree.update({pid: parents[pid][1] for pid in frontier})
+        return tree
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.last.update(self._children())
+            time.sleep(self.period)
+
+    def start(self) -> TreeCpu:
+        self.thread.start()
+        return self
+
+    def total(self) -> float:
+        """CPU seconds so far: this process plus its descendants' last samples."""
+        self.last.update(self._children())
+        return time.process_time() + sum(self.last.values()) / TICK
+
+    def stop(self) -> float:
+        self._stop.set()
+        self.thread.join()
+        return self.total()
+
+
+def measure(spec: dict) -> dict:
+    """One batch in this process (the child): spec has pipeline, n, seed, workers, backend, render."""
+    # scenegen from PYTHONPATH only: the editable install's finder would fill in modules the
+    # baseline does not have from this checkout.
+    sys.meta_path[:] = [f for f in sys.meta_path if "Editable" not in getattr(f, "__name__", "")]
+    try:
+        from scenegen.runner.config import load_pipeline
+        from scenegen.runner.pipeline import run_batch
+    except ModuleNotFoundError:  # the flat layout of earlier commits (83efef1)
+        from scenegen.config import load_pipeline
+        from scenegen.pipeline import run_batch
+
+    overrides = {"n": spec["n"], "seed": spec["seed"], "render": None if spec["render"] else False}
+    config = load_pipeline(Path(spec["pipeline"]), overrides)
+    kwargs, cluster_start = {}, None
+    cpu = TreeCpu().start()
+    if spec["backend"] == "ray":
+        from scenegen.runner.executors import Backend, connect_ray
+
+        t0 = time.perf_counter()
+        connect_ray(None, spec["workers"])
+        cluster_start = time.perf_counter() - t0
+        kwargs["backend"] = Backend("ray")
+    cpu_before = cpu.total()
     with tempfile.TemporaryDirectory() as tmp:
-        summary = run_batch(config, Path(tmp) / "batch", workers=workers, progress=False)
+        summary = run_batch(config, Path(tmp) / "batch", workers=spec["workers"], progress=False, **kwargs)
+    cpu_all = cpu.stop() - cpu_before
+    if spec["backend"] == "ray":
+        import ray
+
+        ray.shutdown()
     n = max(summary.accepted, 1)
-    own = (summary.accepted_seconds["settle"] + summary.accepted_seconds["render"]) / n
+    own_cpu = getattr(summary, "accepted_cpu", None) or summary.accepted_seconds
+    own = (own_cpu["settle"] + own_cpu.get("render", 0.0)) / n
+    cams = ", ".join(f"{c.name} {c.width}x{c.height}" for c in config.proposer.cameras)
     return {
-        "workers": workers,
         "accepted": summary.accepted,
         "proposals": summary.proposals,
         "wall_s": round(summary.wall, 3),
         "accepted_per_s": round(summary.accepted / summary.wall, 3),
-        "wall_per_accepted_s": round(summary.wall / n, 4),
-        "own_settle_render_s": round(own, 4),
-        "wall_over_own": round(summary.wall / n / own, 3) if own else None,
-        "stage_s": {k: round(v, 3) for k, v in summary.seconds.items()},
+        "cluster_start_s": None if cluster_start is None else round(cluster_start, 2),
+        "cpu_all_per_accepted_s": round(cpu_all / n, 4),
+        "own_settle_render_cpu_s": round(own, 4),
+        "cpu_over_own": round(cpu_all / n / own, 3) if own else None,
         "stage_s_per_accepted": {k: round(v / n, 4) for k, v in summary.seconds.items()},
-        "share_of_proposals": {
-            "accepted": round(summary.accepted / summary.proposals, 4),
-            **{k: round(v / summary.proposals, 4) for k, v in summary.rejections.most_common()},
-        },
+        "cameras": cams,
+        "robot_mesh_detail": getattr(config, "robot_mesh_detail", None),
     }
+
+
+# ------------------------------------------------------------------------------ the driver
+
+
+def baseline_tree(ref: str, into: Path) -> Path:
+    """The files of commit ``ref`` (git archive), extracted under ``into``."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref], capture_output=True, check=True).stdout
+    with tempfile.TemporaryFile() as f:
+        f.write(archive)
+        f.seek(0)
+        with tarfile.open(fileobj=f) as tar:
+            tar.extractall(into, filter="data")
+    return into
+
+
+def run_child(spec: dict, code: Path) -> dict:
+    """``measure(spec)`` in a fresh interpreter that imports scenegen from ``code``."""
+    env = {**os.environ, "PYTHONPATH": str(code), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(spec)]
+    result = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True, timeout=3600)
+    if result.returncode != 0:
+        raise SystemExit(f"{spec}: exited {result.returncode}\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def configurations(args) -> list[dict]:
+    runs = []
+    for pipeline in args.pipelines:
+        base = {"pipeline": str(pipeline), "n": args.n, "seed": args.seed, "render": not args.no_render}
+        if args.baseline:
+            runs += [{**base, "code": "baseline", "backend": "local", "workers": w} for w in args.workers]
+        runs += [{**base, "code": "current", "backend": "local", "workers": w} for w in args.workers]
+        if not args.no_ray:
+            runs.append({**base, "code": "current", "backend": "ray", "workers": args.ray_cpus})
+    return runs
+
+
+def report(results: list[dict]) -> None:
+    head = ("code", 9), ("backend", 8), ("workers", 8), ("scenes/s", 9), ("vs base", 8), ("wall s", 8)
+    tail = ("cpu/scene", 10), ("own s+r", 8), ("ratio", 6), ("start s", 8)
+    for pipeline in dict.fromkeys(r["pipeline"] for r in results):
+        rows = [r for r in results if r["pipeline"] == pipeline]
+        print(f"\n{pipeline}: n={rows[0]['n']} cameras: {rows[0]['cameras']}")
+        print("".join(f"{h:>{w}}" for h, w in (*head, *tail)))
+        base = {r["workers"]: r for r in rows if r["code"] == rows[0]["code"] and r["backend"] == "local"}
+        for r in rows:
+            ref = base.get(r["workers"])
+            vs = r["accepted_per_s"] / ref["accepted_per_s"] if ref else float("nan")
+            start = f"{r['cluster_start_s']:.1f}" if r["cluster_start_s"] is not None else "-"
+            print(
+                f"{r['code']:>9}{r['backend']:>8}{r['workers']:>8}{r['accepted_per_s']:>9.2f}{vs:>8.2f}"
+                f"{r['wall_s']:>8.1f}{r['cpu_all_per_accepted_s']:>10.3f}{r['own_settle_render_cpu_s']:>8.3f}"
+                f"{r['cpu_over_own']:>6.2f}{start:>8}"
+            )
+        print("stage wall seconds per accepted scene (all proposals, summed over workers):")
+        print(
+            f"{'stage':<10}"
+            + "".join(f"{r['code'][:4] + '/' + r['backend'][:1] + str(r['workers']):>10}" for r in rows)
+        )
+        for stage in STAGES:
+            print(f"{stage:<10}" + "".join(f"{r['stage_s_per_accepted'].get(stage, 0):>10.3f}" for r in rows))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pipeline", type=Path, default=Path("pipelines/demo.yaml"))
-    parser.add_argument("--n", type=int, default=48)
+    parser.add_argument(
+        "--pipelines",
+        type=Path,
+        nargs="+",
+        default=[Path("pipelines/demo.yaml"), Path("pipelines/procedural.yaml")],
+    )
+    parser.add_argument("--n", type=int, default=48, help="accepted scenes per configuration (default 48)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--ray-cpus", type=int, default=2, help="Ray actors (1 CPU each) of the ray run")
+    parser.add_argument("--baseline", default="83efef1", help="commit whose code is the baseline")
+    parser.add_argument("--no-baseline", dest="baseline", action="store_const", const=None)
+    parser.add_argument("--no-ray", action="store_true")
     parser.add_argument("--no-render", action="store_true")
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/pipeline_throughput.json"))
+    parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.child:
+        print(json.dumps(measure(json.loads(args.child))))
+        return
 
-    overrides = {"n": args.n, "seed": args.seed, "render": False if args.no_render else None}
-    config = load_pipeline(args.pipeline, overrides)
-    cams = ", ".join(f"{c.name} {c.width}x{c.height}" for c in config.proposer.cameras)
-    print(f"{config.name}: n={config.n} seed={config.seed} render={config.render} cameras: {cams}")
-    runs = [measure(config, w) for w in args.workers]
-    base = runs[0]
-
-    columns = (("workers", 8), ("wall s", 9), ("scenes/s", 10), ("speed-up", 10), ("wall/scene", 12))
-    print("\n" + "".join(f"{h:>{w}}" for h, w in (*columns, ("own s+r", 9), ("ratio", 7))))
-    for r in runs:
-        speedup = r["accepted_per_s"] / base["accepted_per_s"]
-        print(
-            f"{r['workers']:>8}{r['wall_s']:>9.1f}{r['accepted_per_s']:>10.2f}{speedup:>10.2f}"
-            f"{r['wall_per_accepted_s']:>12.3f}{r['own_settle_render_s']:>9.3f}{r['wall_over_own']:>7.2f}"
-        )
-    print("\nstage seconds per accepted scene (all proposals, summed over workers):")
-    print(f"{'stage':<10}" + "".join(f"{'w=' + str(r['workers']):>10}" for r in runs))
-    for stage in STAGES:
-        print(f"{stage:<10}" + "".join(f"{r['stage_s_per_accepted'][stage]:>10.3f}" for r in runs))
-    print("\nshare of proposals: " + ", ".join(f"{k} {v:.1%}" for k, v in base["share_of_proposals"].items()))
-
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        code = {"current": ROOT}
+        if args.baseline:
+            code["baseline"] = baseline_tree(args.baseline, Path(tmp) / "baseline")
+        for spec in configurations(args):
+            print(
+                f"running {spec['code']} {spec['backend']} workers={spec['workers']} {spec['pipeline']} ...",
+                flush=True,
+            )
+            results.append({**spec, **run_child(spec, code[spec["code"]])})
+    report(results)
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    result = {
-        "pipeline": str(args.pipeline),
-        "n": args.n,
-        "seed": args.seed,
-        "render": config.render,
-        "cameras": cams,
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
-        "runs": runs,
+    payload = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+        },
+        "baseline": args.baseline,
+        "results": results,
     }
-    args.json.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"saved {args.json}")
+    args.json.write_text(json.dumps(payload, indent=1) + "\n")
+    print(f"\nsaved {args.json}")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ reference layouts' own leave-one-out distances (docs/realism.md, "Per-scene scor
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,13 +96,24 @@ def scene_score_for_record(record, scorer: SceneScorer) -> float:
     return scorer.score(record_row(record))
 
 
-@functools.lru_cache(maxsize=2)
+_SCORERS: dict[tuple[str, int], SceneScorer] = {}
+
+
 def reference_scorer(reference: str, k: int) -> SceneScorer:
-    """The scorer of a reference Parquet file's train split (built once per process: ~3 s)."""
+    """The scorer of a reference Parquet file's train split, built once per process (~3 s: most of it
+    reading the rows) unless :func:`install_scorer` handed this process one built elsewhere."""
     from scenegen.paths import PROJECT_ROOT
 
-    path = Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
-    return SceneScorer.from_rows(load_rows(path, "train"), k)
+    if (reference, k) not in _SCORERS:
+        path = Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
+        _SCORERS[(reference, k)] = SceneScorer.from_rows(load_rows(path, "train"), k)
+    return _SCORERS[(reference, k)]
+
+
+def install_scorer(reference: str, k: int, scorer: SceneScorer) -> None:
+    """Use ``scorer`` as this process's :func:`reference_scorer` of (``reference``, ``k``): a pool
+    worker gets the coordinator's instead of reading the reference set again."""
+    _SCORERS[(reference, k)] = scorer
 
 
 def placement_row(target: str, objects, furniture, lighting) -> dict:

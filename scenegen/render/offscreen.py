@@ -126,14 +126,23 @@ class SceneRenderer:
             self._context = None
 
     def render(
-        self, model, data, cameras: Sequence[str], ids: dict[str, int], size: Sequence[tuple[int, int]]
+        self,
+        model,
+        data,
+        cameras: Sequence[str],
+        ids: dict[str, int],
+        size: Sequence[tuple[int, int]],
+        robot_detail: float = 1.0,
     ):
-        """Frames for each camera name at its (width, height); ``data`` must be forwarded."""
+        """Frames for each camera name at its (width, height); ``data`` must be forwarded.
+
+        ``robot_detail`` < 1 draws the robot's visual meshes decimated to that share of their
+        triangles (render/robot_mesh.py; the model itself is not changed)."""
         mj = self._mujoco
         self._context.make_current()
         model.vis.quality.shadowsize = RENDER_SETTINGS["shadowsize"]
         model.vis.global_.offwidth, model.vis.global_.offheight = MAX_SIZE
-        con = self._context_for(model)
+        con = self._context_for(model, robot_detail)
         scene = mj.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
         scene.flags[mj.mjtRndFlag.mjRND_REFLECTION] = RENDER_SETTINGS["reflections"]
         option = mj.MjvOption()
@@ -147,11 +156,12 @@ class SceneRenderer:
             for name, wh in zip(cameras, size, strict=True)
         ]
 
-    def _context_for(self, model):
+    def _context_for(self, model, robot_detail: float = 1.0):
         """An MjrContext holding the model's meshes and textures, reused while they stay the same.
 
         Uploading robosuite's meshes and textures costs ~0.2 s per context; scenes built by
-        world.build_world share one mesh and texture table, so one upload serves a whole batch.
+        world.build_world share one mesh and texture table, so one upload (and, with
+        ``robot_detail`` < 1, one decimation of the robot's meshes) serves a whole batch.
         """
         mj = self._mujoco
         signature = (
@@ -161,11 +171,17 @@ class SceneRenderer:
             model.tex_height.tobytes(),
             model.hfield_nrow.tobytes(),
             model.nskin,
+            robot_detail,
         )
         if self._con is None or signature != self._signature:
             if self._con is not None:
                 self._con.free()
-            self._con = mj.MjrContext(model, mj.mjtFontScale.mjFONTSCALE_100)
+            source = model
+            if robot_detail < 1.0:
+                from scenegen.render.robot_mesh import decimated_copy
+
+                source = decimated_copy(model, ROBOT_BODY_PREFIXES, robot_detail)
+            self._con = mj.MjrContext(source, mj.mjtFontScale.mjFONTSCALE_100)
             mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
             self._con.readDepthMap = mj.mjtDepthMap.mjDEPTH_ZEROFAR
             self._signature = signature

@@ -52,7 +52,8 @@ class PipelineConfig(BaseModel):
     Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
     many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
     (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
-    ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``.
+    ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``;
+    ``robot_mesh_detail`` (the robot's meshes decimated for drawing).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -70,6 +71,9 @@ class PipelineConfig(BaseModel):
     tags: TagSettings = TagSettings()
     realism: RealismFilter | None = None  # per-scene `unrealistic` filter; None: off
     render: bool = True  # RGB, depth and segmentation per camera (``--no-render`` turns it off)
+    # Share of the robot's visual-mesh triangles drawn (quadric decimation, once per worker; the
+    # simulated model is unchanged); None: the meshes as shipped. Recorded in scene.json `render`.
+    robot_mesh_detail: float | None = Field(None, gt=0.0, le=1.0)
 
     @model_validator(mode="after")
     def _reachable_request(self):
@@ -85,8 +89,9 @@ class PipelineConfig(BaseModel):
         # A recipe without the realism filter dumps (and hashes) exactly as before the filter existed,
         # so the digests stamped into the reference set and earlier batches stay valid.
         data = handler(self)
-        if data.get("realism", 0) is None:
-            del data["realism"]
+        for key in ("realism", "robot_mesh_detail"):  # the same for the render setting
+            if data.get(key, 0) is None:
+                del data[key]
         return data
 
     @property

@@ -12,13 +12,14 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import sys
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 from scenegen.runner.config import PipelineConfig
-from scenegen.runner.process import Outcome, init_worker, work
+from scenegen.runner.process import Outcome, init_worker, shared_state, work
 from scenegen.schema.scene import SceneProposal
 
 BACKENDS = ("local", "ray")
@@ -57,13 +58,34 @@ def ordered_outcomes(
     backend: Backend = LOCAL,
 ) -> Iterator[Outcome]:
     """Outcomes of ``proposals`` in their order, computed by ``workers`` workers of ``backend``."""
-    if backend.kind == "ray":
-        yield from _ray_outcomes(proposals, config, workers, export, backend.address)
-    elif workers <= 1:
+    if backend.kind == "local" and workers <= 1:
         init_worker(config.model_dump_json(), False, export)
         yield from map(work, proposals)
-    else:
-        yield from _pool_outcomes(proposals, config, workers, export)
+        return
+    threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
+    try:
+        if backend.kind == "ray":
+            yield from _ray_outcomes(proposals, config, workers, export, backend.address)
+        else:
+            yield from _pool_outcomes(proposals, config, workers, export)
+    finally:
+        _torch_threads(threads)
+
+
+def _torch_threads(n: int) -> int | None:
+    """Set torch's intra-op threads in this process to ``n`` (if torch is loaded); the previous count.
+
+    With one worker per core a second proposer thread only spins: the diffusion proposer took 0.53 s
+    per proposal with 2 threads beside 2 busy workers and 0.07 s with 1, the proposals bit-identical
+    (measured on 2 cores, benchmarks/pipeline_throughput.py). Restored afterwards, so what the caller
+    does next (training, say) runs as it did before.
+    """
+    torch = sys.modules.get("torch")
+    if torch is None or n is None:
+        return None
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    return before
 
 
 def _pool_outcomes(proposals, config: PipelineConfig, workers: int, export: bool) -> Iterator[Outcome]:
@@ -73,7 +95,7 @@ def _pool_outcomes(proposals, config: PipelineConfig, workers: int, export: bool
         workers,
         mp_context=multiprocessing.get_context("spawn"),
         initializer=init_worker,
-        initargs=(config.model_dump_json(), True, export),
+        initargs=(config.model_dump_json(), True, export, shared_state(config)),
     )
     try:
         pending: deque = deque()
@@ -132,8 +154,8 @@ def connect_ray(address: str | None, num_cpus: int) -> bool:
 class RayWorker:
     """A Ray actor (1 CPU) that loads the recipe, the catalog and one GL context once."""
 
-    def __init__(self, config_json: str, export: bool):
-        init_worker(config_json, True, export)
+    def __init__(self, config_json: str, export: bool, scorer=None):
+        init_worker(config_json, True, export, scorer)
 
     def work(self, proposal: SceneProposal) -> Outcome:
         return work(proposal)
@@ -147,7 +169,8 @@ def _ray_outcomes(
 
     started = connect_ray(address, workers)
     actor = ray.remote(num_cpus=1)(RayWorker)
-    actors = [actor.remote(config.model_dump_json(), export) for _ in range(workers)]
+    shared = ray.put(shared_state(config))  # one copy in the object store for every actor
+    actors = [actor.remote(config.model_dump_json(), export, shared) for _ in range(workers)]
     pool = ActorPool(actors)  # hands each proposal to an idle actor; get_next() keeps submission order
     try:
         in_flight = 0

@@ -45,6 +45,7 @@ class BatchSummary:
     rejections: Counter
     seconds: dict[str, float]
     accepted_seconds: dict[str, float]
+    accepted_cpu: dict[str, float]  # CPU seconds in the workers' stages, accepted scenes only
     wall: float
 
 
@@ -65,6 +66,7 @@ def run_batch(
     state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     seconds = dict.fromkeys(STAGES, 0.0)  # all proposals, summed over workers
     accepted_seconds = dict.fromkeys(STAGES, 0.0)  # accepted scenes only
+    accepted_cpu = dict.fromkeys(STAGES, 0.0)
     rejections, accepted, index = Counter(state.rejections), state.accepted, state.next_index
     done_before = state.accepted + sum(state.rejections.values())
     start = time.perf_counter()
@@ -90,6 +92,8 @@ def run_batch(
                 accepted += 1
                 for stage, s in outcome.seconds.items():
                     accepted_seconds[stage] += s
+                for stage, s in outcome.cpu.items():
+                    accepted_cpu[stage] += s
                 bar.update(1)
             else:
                 store.log_rejection(outcome.rejection)
@@ -115,7 +119,9 @@ def run_batch(
         "proposals_this_run": proposals_done - done_before,
     }
     atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
-    return BatchSummary(out, accepted, proposals_done, rejections, seconds, accepted_seconds, wall)
+    return BatchSummary(
+        out, accepted, proposals_done, rejections, seconds, accepted_seconds, accepted_cpu, wall
+    )
 
 
 def write_batch_manifest(out: Path, config: PipelineConfig, catalog_sha: str):

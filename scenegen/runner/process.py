@@ -36,7 +36,22 @@ class Outcome:
     needed: dict[str, str] = field(default_factory=dict)
     images: dict[str, bytes] = field(default_factory=dict)
     rejection: Rejection | None = None
-    seconds: dict[str, float] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)  # wall seconds per stage
+    cpu: dict[str, float] = field(default_factory=dict)  # this worker's CPU seconds per stage
+
+
+class _Stopwatch:
+    """Wall and CPU seconds of one stage at a time, into an outcome's ``seconds`` and ``cpu``."""
+
+    def __init__(self, outcome: Outcome):
+        self.outcome, self.wall, self.cpu = outcome, 0.0, 0.0
+
+    def start(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+
+    def stop(self, stage: str) -> None:
+        self.outcome.seconds[stage] = time.perf_counter() - self.wall
+        self.outcome.cpu[stage] = time.process_time() - self.cpu
 
 
 def process_proposal(
@@ -47,31 +62,32 @@ def process_proposal(
     ``export=False`` skips the MJCF (layout-only datasets such as the reference set do not store it).
     """
     out = Outcome(proposal.index)
-    t0 = time.perf_counter()
+    clock = _Stopwatch(out)
+    clock.start()
     checks, ok = run_checks(proposal, catalog, config.checks)
-    out.seconds["check"] = time.perf_counter() - t0
+    clock.stop("check")
     if not ok:
         out.rejection = Rejection.from_check(proposal.index, checks[-1])
         return out
 
-    t0 = time.perf_counter()
+    clock.start()
     spec = world.build_world(
         catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras
     )
     model = spec.compile()
     qpos0, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
-    out.seconds["build"] = time.perf_counter() - t0
+    clock.stop("build")
 
-    t0 = time.perf_counter()
+    clock.start()
     settled = settle(model, proposal, qpos0, ctrl, config.settle, catalog)
-    out.seconds["settle"] = time.perf_counter() - t0
+    clock.stop("settle")
     checks += settled.checks
     if not settled.passed:
         failed = next(c for c in settled.checks if not c.passed)
         out.rejection = Rejection.from_check(proposal.index, failed)
         return out
 
-    t0 = time.perf_counter()
+    clock.start()
     data = mujoco.MjData(model)
     data.qpos[:], data.ctrl[:] = settled.qpos, settled.ctrl
     mujoco.mj_forward(model, data)
@@ -82,22 +98,22 @@ def process_proposal(
         objects = settled_objects(model, proposal, settled.qpos)
         if config.realism is not None:
             checks.append(realism_check(proposal, objects, config.realism))
-    out.seconds["tag"] = time.perf_counter() - t0
+    clock.stop("tag")
     if not checks[-1].passed:
         out.rejection = Rejection.from_check(proposal.index, checks[-1])
         return out
 
     segmentation: dict[str, int] = {}
     if config.render:
-        t0 = time.perf_counter()
-        rendered = _render(model, data, proposal)
+        clock.start()
+        rendered = _render(model, data, proposal, config.robot_mesh_detail or 1.0)
         if isinstance(rendered, Rejection):
             out.rejection = rendered
             return out
         out.images, segmentation = rendered
-        out.seconds["render"] = time.perf_counter() - t0
+        clock.stop("render")
 
-    t0 = time.perf_counter()
+    clock.start()
     if export:
         out.xml, out.needed = scene_xml(spec, settled.qpos, settled.ctrl, dict(free_bodies(model)))
     out.record = SceneRecord(
@@ -114,7 +130,7 @@ def process_proposal(
         tags=tags,
         predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
-        render=RENDER_SETTINGS if config.render else None,
+        render=render_settings(config),
         contacts=tuple(contacts),
         contact_options=world.CONTACT_OPTIONS,
         checks=tuple(checks),
@@ -127,11 +143,22 @@ def process_proposal(
             "catalog_sha256": catalog.sha256,
         },
     )
-    out.seconds["store"] = time.perf_counter() - t0  # record + MJCF export; file writes are added later
+    clock.stop("store")  # record + MJCF export; file writes are added later
     return out
 
 
-def _render(model, data, proposal: SceneProposal) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:
+def render_settings(config: PipelineConfig) -> dict | None:
+    """What scene.json records of how its images were drawn (None: not rendered)."""
+    if not config.render:
+        return None
+    if config.robot_mesh_detail is None:
+        return RENDER_SETTINGS  # as before the setting existed: earlier batches keep their bytes
+    return {**RENDER_SETTINGS, "robot_mesh_detail": config.robot_mesh_detail}
+
+
+def _render(
+    model, data, proposal: SceneProposal, robot_detail: float = 1.0
+) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:
     """PNG files of every camera (rgb, depth, seg) and the segmentation ids; a ``render_failed``
     rejection when the renderer fails on this scene."""
     from scenegen.render.offscreen import frames_to_files, process_renderer, segmentation_ids
@@ -146,6 +173,7 @@ def _render(model, data, proposal: SceneProposal) -> tuple[dict[str, bytes], dic
             [c.name for c in proposal.cameras],
             segmentation,
             [(c.width, c.height) for c in proposal.cameras],
+            robot_detail,
         )
     except Exception as exc:  # noqa: BLE001 - a scene that cannot be rendered is rejected, not fatal
         result = CheckResult(
@@ -221,18 +249,34 @@ def _camera_entry(cam, rendered: bool = True) -> dict:
 _WORKER: tuple[PipelineConfig, Catalog, bool] | None = None
 
 
-def init_worker(config_json: str, pooled: bool = False, export: bool = True) -> None:
-    """Pool initializer: load the recipe and catalog once, and open this worker's GL context."""
+def init_worker(config_json: str, pooled: bool = False, export: bool = True, scorer=None) -> None:
+    """Pool initializer: load the recipe and catalog once, and open this worker's GL context.
+
+    ``scorer``: the recipe's realism scorer (:func:`shared_state`), built once by the coordinator."""
     global _WORKER
     if pooled:
         # Mesa's llvmpipe rasterizes on every core by default; with one worker per core that thrashes.
         os.environ.setdefault("LP_NUM_THREADS", "1")
     config = PipelineConfig.model_validate_json(config_json)
+    if scorer is not None:
+        from scenegen.analysis.scene_score import install_scorer
+
+        install_scorer(config.realism.reference, config.realism.k, scorer)
     _WORKER = (config, load_catalog(), export)
     if config.render:
         from scenegen.render.offscreen import process_renderer
 
         process_renderer()
+
+
+def shared_state(config: PipelineConfig):
+    """What the coordinator builds once and hands to every worker: the realism scorer (~3 s to
+    build from the reference set, ~2.5 MB to send), or None without the filter."""
+    if config.realism is None:
+        return None
+    from scenegen.analysis.scene_score import reference_scorer
+
+    return reference_scorer(config.realism.reference, config.realism.k)
 
 
 def work(proposal: SceneProposal) -> Outcome:

@@ -92,3 +92,12 @@ def test_a_stored_record_scores_as_its_parquet_row(rows, scorer):
     record = process_proposal(proposal, config, catalog, export=False).record
     assert record is not None
     assert scene_score.scene_score_for_record(record, scorer) == scorer.score(heldout[0])
+
+
+def test_a_worker_uses_the_scorer_its_coordinator_built(scorer, monkeypatch: pytest.MonkeyPatch):
+    """Pool workers get the coordinator's scorer (runner/process.py init_worker) instead of reading
+    the reference set again: an installed scorer is the one returned, and nothing is read."""
+    monkeypatch.setattr(scene_score, "_SCORERS", {})
+    monkeypatch.setattr(scene_score, "load_rows", lambda *a, **k: pytest.fail("the reference set was read"))
+    scene_score.install_scorer("elsewhere.parquet", 5, scorer)
+    assert scene_score.reference_scorer("elsewhere.parquet", 5) is scorer
