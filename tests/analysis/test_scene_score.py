@@ -101,3 +101,32 @@ def test_a_worker_uses_the_scorer_its_coordinator_built(scorer, monkeypatch: pyt
     monkeypatch.setattr(scene_score, "load_rows", lambda *a, **k: pytest.fail("the reference set was read"))
     scene_score.install_scorer("elsewhere.parquet", 5, scorer)
     assert scene_score.reference_scorer("elsewhere.parquet", 5) is scorer
+
+
+def test_the_scorer_is_cached_on_disk_and_rebuilt_when_the_cache_is_bad(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
+    reference = tmp_path / "reference.parquet"
+    reference.write_bytes(REFERENCE.read_bytes())
+    monkeypatch.setenv("SCENEGEN_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(scene_score, "_SCORERS", {})
+    built = scene_score.reference_scorer(str(reference), 5)
+    cache = scene_score.scorer_cache_path(reference, 5)
+    assert cache.is_file() and cache.is_relative_to(tmp_path / "cache")
+
+    scene_score._SCORERS.clear()
+    real_load_rows = scene_score.load_rows
+    monkeypatch.setattr(scene_score, "load_rows", lambda *a, **k: pytest.fail("the cache was not used"))
+    cached = scene_score.reference_scorer(str(reference), 5)
+    for name in ("mean", "scale", "reference", "reference_knn"):
+        assert np.array_equal(getattr(cached, name), getattr(built, name)), name
+    assert cached.categories == built.categories and cached.k == 5
+
+    cache.write_bytes(b"not an npz")  # a torn or foreign file: rebuilt, not trusted
+    scene_score._SCORERS.clear()
+    monkeypatch.setattr(scene_score, "load_rows", real_load_rows)
+    rebuilt = scene_score.reference_scorer(str(reference), 5)
+    assert np.array_equal(rebuilt.reference_knn, built.reference_knn)
+    with open(reference, "ab") as f:  # other reference bytes: another cache file
+        f.write(b"\0")
+    assert scene_score.scorer_cache_path(reference, 5) != cache
