@@ -13,6 +13,7 @@ Collision geoms (groups 0 and 3) and all sites are hidden; what is seen is what 
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import warnings
@@ -114,16 +115,21 @@ class SceneRenderer:
         self._mujoco = mujoco
         self._context = mujoco.GLContext(*MAX_SIZE)
         self._context.make_current()
-        self._con = None
+        self._con = None  # colour pass: multisampled (anti-aliased)
+        self._seg_con = None  # segmentation and depth pass: one sample per pixel
         self._signature = None
 
     def close(self) -> None:
-        if self._con is not None:
-            self._con.free()
-            self._con = None
+        self._free_contexts()
         if self._context is not None:
             self._context.free()
             self._context = None
+
+    def _free_contexts(self) -> None:
+        for con in (self._con, self._seg_con):
+            if con is not None:
+                con.free()
+        self._con = self._seg_con = None
 
     def render(
         self,
@@ -142,7 +148,7 @@ class SceneRenderer:
         self._context.make_current()
         model.vis.quality.shadowsize = RENDER_SETTINGS["shadowsize"]
         model.vis.global_.offwidth, model.vis.global_.offheight = MAX_SIZE
-        con = self._context_for(model, robot_detail)
+        con, seg_con = self._context_for(model, robot_detail)
         scene = mj.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
         scene.flags[mj.mjtRndFlag.mjRND_REFLECTION] = RENDER_SETTINGS["reflections"]
         option = mj.MjvOption()
@@ -152,7 +158,7 @@ class SceneRenderer:
         option.sitegroup[:] = 0
         instance = _geom_instance(model, ids)
         return [
-            self._camera(model, data, con, scene, option, name, wh, instance)
+            self._camera(model, data, (con, seg_con), scene, option, name, wh, instance)
             for name, wh in zip(cameras, size, strict=True)
         ]
 
@@ -163,7 +169,6 @@ class SceneRenderer:
         world.build_world share one mesh and texture table, so one upload (and, with
         ``robot_detail`` < 1, one decimation of the robot's meshes) serves a whole batch.
         """
-        mj = self._mujoco
         signature = (
             model.mesh_vertnum.tobytes(),
             model.mesh_facenum.tobytes(),
@@ -174,21 +179,31 @@ class SceneRenderer:
             robot_detail,
         )
         if self._con is None or signature != self._signature:
-            if self._con is not None:
-                self._con.free()
+            self._free_contexts()
             source = model
             if robot_detail < 1.0:
                 from scenegen.render.robot_mesh import decimated_copy
 
                 source = decimated_copy(model, ROBOT_BODY_PREFIXES, robot_detail)
-            self._con = mj.MjrContext(source, mj.mjtFontScale.mjFONTSCALE_100)
-            mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, self._con)
-            self._con.readDepthMap = mj.mjtDepthMap.mjDEPTH_ZEROFAR
+            self._con = self._new_context(source)
+            # The segmentation pass draws no edge blends, so a multisampled buffer only costs its
+            # resolve: a second context without one (measured: ~10 ms less per camera on llvmpipe).
+            single = copy.copy(source)
+            single.vis.quality.offsamples = 0
+            self._seg_con = self._new_context(single)
             self._signature = signature
-        return self._con
+        return self._con, self._seg_con
 
-    def _camera(self, model, data, con, scene, option, name, wh, instance) -> Frames:
+    def _new_context(self, model):
         mj = self._mujoco
+        con = mj.MjrContext(model, mj.mjtFontScale.mjFONTSCALE_100)
+        mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, con)
+        con.readDepthMap = mj.mjtDepthMap.mjDEPTH_ZEROFAR
+        return con
+
+    def _camera(self, model, data, contexts, scene, option, name, wh, instance) -> Frames:
+        mj = self._mujoco
+        con, seg_con = contexts
         width, height = wh
         rect = mj.MjrRect(0, 0, width, height)
         camera = mj.MjvCamera()
@@ -198,6 +213,7 @@ class SceneRenderer:
 
         rgb = np.empty((height, width, 3), np.uint8)
         depth_buffer = np.empty((height, width), np.float32)
+        mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, con)  # binds this context's framebuffer
         mj.mjr_render(rect, scene, con)
         mj.mjr_readPixels(rgb, None, rect, con)
 
@@ -206,8 +222,9 @@ class SceneRenderer:
         scene.flags[mj.mjtRndFlag.mjRND_SEGMENT] = True
         scene.flags[mj.mjtRndFlag.mjRND_IDCOLOR] = True
         segrgb = np.empty((height, width, 3), np.uint8)
-        mj.mjr_render(rect, scene, con)
-        mj.mjr_readPixels(segrgb, depth_buffer, rect, con)
+        mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, seg_con)
+        mj.mjr_render(rect, scene, seg_con)
+        mj.mjr_readPixels(segrgb, depth_buffer, rect, seg_con)
         scene.flags[mj.mjtRndFlag.mjRND_SEGMENT] = False
         scene.flags[mj.mjtRndFlag.mjRND_IDCOLOR] = False
 
