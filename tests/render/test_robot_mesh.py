@@ -45,8 +45,11 @@ def robot_faces(model) -> int:
     return sum(int(model.mesh_facenum[i]) for i in robot_visual_meshes(model, ROBOT_BODY_PREFIXES))
 
 
-def test_decimated_copy_draws_fewer_robot_triangles_and_leaves_the_model_alone(scene):
+def test_decimated_copy_draws_fewer_robot_triangles_and_leaves_the_model_alone(
+    scene, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+):
     model, _, _ = scene
+    monkeypatch.setenv("SCENEGEN_CACHE", str(tmp_path))  # the first copy decimates, the second reads
     before = {name: getattr(model, name).copy() for name in MESH_FIELDS}
     copy = decimated_copy(model, ROBOT_BODY_PREFIXES, DETAIL)
     assert robot_faces(model) > 100_000  # robosuite's Panda as shipped
@@ -56,8 +59,9 @@ def test_decimated_copy_draws_fewer_robot_triangles_and_leaves_the_model_alone(s
     assert others and all(copy.mesh_facenum[i] == model.mesh_facenum[i] for i in others)
     for name in MESH_FIELDS:  # the simulated model is not touched
         assert np.array_equal(getattr(model, name), before[name]), name
+    assert len(list((tmp_path / "robot_meshes").glob("*.npz"))) == 1
     again = decimated_copy(model, ROBOT_BODY_PREFIXES, DETAIL)
-    for name in MESH_FIELDS:  # the same decimation every time
+    for name in MESH_FIELDS:  # the same decimation every time, computed or cached
         assert np.array_equal(getattr(copy, name), getattr(again, name)), name
     with pytest.raises(ValueError, match="robot mesh detail"):
         decimated_copy(model, ROBOT_BODY_PREFIXES, 0.0)
