@@ -48,7 +48,7 @@ lint: setup
 	$(BIN)/ruff check scenegen tests benchmarks
 	$(BIN)/ruff format --check scenegen tests benchmarks
 
-bench: setup  ## pipeline throughput with 1 and 2 workers (benchmarks/pipeline_throughput.py)
+bench: setup  ## pipeline throughput: baseline commit vs this checkout, 1 and 2 workers, Ray (benchmarks/pipeline_throughput.py, ~10 min)
 	$(BIN)/python benchmarks/pipeline_throughput.py
 
 bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and the generator (benchmarks/rare_case_yield.py)

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import fail, first_line
+from scenegen.cli.common import add_backend_arguments, backend_from, fail, first_line
 
 
 def add_commands(sub) -> None:
@@ -38,7 +38,8 @@ def add_commands(sub) -> None:
         help="only the first N scenes of each (tag, target category) cell of --categories",
     )
     lab.add_argument("--categories", nargs="+", help="target categories for --per-cell (e.g. can mug box)")
-    lab.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    lab.add_argument("--workers", type=int, default=1, help="processes or Ray actors (default 1)")
+    add_backend_arguments(lab)
     lab.add_argument(
         "--observation",
         choices=("rgbd", "state"),
@@ -108,7 +109,12 @@ def add_commands(sub) -> None:
 
 def label(args: argparse.Namespace) -> int:
     from scenegen.policy.labels import LabelError, label
+    from scenegen.runner.executors import BackendError
 
+    try:
+        backend = backend_from(args)
+    except BackendError as exc:
+        return fail(str(exc))
     if args.workers < 1 or any(v is not None and v < 1 for v in (args.limit, args.per_tag)):
         return fail("--workers, --limit and --per-tag must be at least 1")
     if (args.per_cell is None) != (args.categories is None):
@@ -128,8 +134,9 @@ def label(args: argparse.Namespace) -> int:
             observation=args.observation,
             per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
             outside_panels=args.outside_panels,
+            backend=backend,
         )
-    except (LabelError, OSError) as exc:
+    except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))
     print(f"{stats['rows']} rows ({stats['ran']} run, {stats['reused']} reused) -> {stats['out']}")
     return 0

@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import os
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -223,6 +221,7 @@ def label(
     observation: str = "rgbd",
     per_cell: tuple[int, Sequence[str]] | None = None,
     outside_panels: bool = False,
+    backend=None,
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
@@ -230,7 +229,8 @@ def label(
     source order), for a success table per tag without labelling every scene; ``per_cell`` (N,
     categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
     selection when both are given); ``outside_panels``: leave out the transfer experiment's panel
-    layouts. ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled)."""
+    layouts. ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled).
+    ``backend``: where the ``workers`` run (scenegen.runner.executors.Backend; default a local pool)."""
     try:
         scenes = load_scenes(source, split)
     except (OSError, ValueError) as exc:
@@ -248,7 +248,7 @@ def label(
         scenes = [s for s in scenes if s.scene_id not in taken]
     scenes = [s for s in scenes if feasible(s)]
     scenes = scenes[:limit] if limit is not None else scenes
-    rows, ran = label_scenes(scenes, out, primitives, observation, workers, progress)
+    rows, ran = label_scenes(scenes, out, primitives, observation, workers, progress, backend=backend)
     return {"rows": len(rows), "ran": ran, "reused": len(rows) - ran, "out": str(out)}
 
 
@@ -261,6 +261,7 @@ def label_scenes(
     progress: bool = True,
     keep: bool = False,
     reuse: Sequence[Path] = (),
+    backend=None,
 ) -> tuple[list[dict], int]:
     """Label ``scenes`` (feasible ones) with every primitive (or those named) into ``out``; returns
     their rows and how many were run now. ``keep``: ``out`` is a store that keeps every row it held
@@ -282,7 +283,8 @@ def label_scenes(
             cache.setdefault(key, row)
     todo = [job for job in jobs if job.key not in cache]
     with open(log, "a") as sink:
-        for row in tqdm(_execute(todo, workers), total=len(todo), disable=not progress, desc="label"):
+        rows_out = _execute(todo, workers, backend)
+        for row in tqdm(rows_out, total=len(todo), disable=not progress, desc="label"):
             sink.write(json.dumps(row, sort_keys=True) + "\n")
             sink.flush()
             cache[_key(row)] = row
@@ -295,14 +297,16 @@ def label_scenes(
     return rows, len(todo)
 
 
-def _execute(jobs: list[Job], workers: int) -> Iterator[dict]:
-    if workers <= 1:
+def _execute(jobs: list[Job], workers: int, backend=None) -> Iterator[dict]:
+    """Rows of ``jobs`` in order: here, or on ``workers`` workers of ``backend`` (runner/executors.py)."""
+    from scenegen.runner.executors import LOCAL, ordered_map
+
+    backend = backend or LOCAL
+    if workers <= 1 and backend.kind == "local":
         _init_worker()
         try:
             yield from map(_run, jobs)
         finally:
             _close_worker_env()
         return
-    context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker) as pool:
-        yield from pool.map(_run, jobs, chunksize=1)
+    yield from ordered_map(_run, jobs, workers, _init_worker, (), backend)

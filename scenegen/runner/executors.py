@@ -1,9 +1,10 @@
-"""Where the per-proposal work runs: this process, a local spawn pool, or Ray actors.
+"""Where the per-item work runs: this process, a local spawn pool, or Ray actors.
 
-Every backend yields :class:`~scenegen.runner.process.Outcome` objects in proposal order, so the
-coordinator (``run_batch``, the reference builder, the sweep) stays the only writer and commits in
-proposal-index order whatever runs the work. A worker is a process that ran
-:func:`~scenegen.runner.process.init_worker` once (recipe, catalog, one GL context); with Ray it is an
+:func:`ordered_map` hands items to workers and yields the results in the items' order whatever the
+backend, so its caller stays the only writer and commits in order. :func:`ordered_outcomes` is it
+for proposals (``run_batch``, the reference builder, the sweep): a worker there ran
+:func:`~scenegen.runner.process.init_worker` once (recipe, catalog, one GL context). The expert
+labels (scenegen/policy/labels.py) map primitive executions the same way. With Ray a worker is an
 actor holding one CPU. Closing the generator stops the workers.
 """
 
@@ -14,9 +15,10 @@ import multiprocessing
 import os
 import sys
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
 from scenegen.runner.config import PipelineConfig
 from scenegen.runner.process import Outcome, init_worker, shared_state, work
@@ -24,7 +26,9 @@ from scenegen.schema.scene import SceneProposal
 
 BACKENDS = ("local", "ray")
 RAY_PIN = "ray==2.60.0"  # measured with numpy<2 (shared/PITFALLS.md); the `ray` extra in pyproject.toml
-IN_FLIGHT_PER_WORKER = 4  # proposals submitted ahead of the one the coordinator waits for
+IN_FLIGHT_PER_WORKER = 4  # items submitted ahead of the one the coordinator waits for
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 class BackendError(RuntimeError):
@@ -64,12 +68,53 @@ def ordered_outcomes(
         return
     threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
     try:
-        if backend.kind == "ray":
-            yield from _ray_outcomes(proposals, config, workers, export, backend.address)
-        else:
-            yield from _pool_outcomes(proposals, config, workers, export)
+        initargs = (config.model_dump_json(), True, export, shared_state(config))
+        yield from ordered_map(work, proposals, workers, init_worker, initargs, backend)
     finally:
         _torch_threads(threads)
+
+
+def ordered_map(
+    fn: Callable[[T], R],
+    items: Iterable[T],
+    workers: int,
+    initializer: Callable[..., None] | None = None,
+    initargs: tuple = (),
+    backend: Backend = LOCAL,
+) -> Iterator[R]:
+    """``fn(item)`` for each item, in the items' order, on ``workers`` workers of ``backend`` that
+    each ran ``initializer(*initargs)`` once. ``fn`` and ``initializer`` are module-level functions
+    (pickled by reference); at most IN_FLIGHT_PER_WORKER x workers items are out at a time, so
+    ``items`` may be a lazy stream. Closing the generator stops the workers."""
+    if backend.kind == "ray":
+        yield from _ray_map(fn, items, workers, initializer, initargs, backend.address)
+    elif workers <= 1:
+        if initializer is not None:
+            initializer(*initargs)
+        yield from map(fn, items)
+    else:
+        yield from _pool_map(fn, items, workers, initializer, initargs)
+
+
+def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
+    # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
+    # fails) breaks the pool with an error instead of being respawned forever.
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=initializer,
+        initargs=initargs,
+    )
+    try:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= IN_FLIGHT_PER_WORKER * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _torch_threads(n: int) -> int | None:
@@ -86,27 +131,6 @@ def _torch_threads(n: int) -> int | None:
     before = torch.get_num_threads()
     torch.set_num_threads(n)
     return before
-
-
-def _pool_outcomes(proposals, config: PipelineConfig, workers: int, export: bool) -> Iterator[Outcome]:
-    # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
-    # fails) breaks the pool with an error instead of being respawned forever.
-    pool = ProcessPoolExecutor(
-        workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=init_worker,
-        initargs=(config.model_dump_json(), True, export, shared_state(config)),
-    )
-    try:
-        pending: deque = deque()
-        for proposal in proposals:
-            pending.append(pool.submit(work, proposal))
-            if len(pending) >= IN_FLIGHT_PER_WORKER * workers:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 # ------------------------------------------------------------------------------------------- Ray
@@ -152,30 +176,29 @@ def connect_ray(address: str | None, num_cpus: int) -> bool:
 
 
 class RayWorker:
-    """A Ray actor (1 CPU) that loads the recipe, the catalog and one GL context once."""
+    """A Ray actor (1 CPU) that runs an initializer once, then one function call at a time."""
 
-    def __init__(self, config_json: str, export: bool, scorer=None):
-        init_worker(config_json, True, export, scorer)
+    def __init__(self, initializer, initargs: tuple):
+        if initializer is not None:
+            initializer(*initargs)
 
-    def work(self, proposal: SceneProposal) -> Outcome:
-        return work(proposal)
+    def call(self, fn, item):
+        return fn(item)
 
 
-def _ray_outcomes(
-    proposals, config: PipelineConfig, workers: int, export: bool, address: str | None
-) -> Iterator[Outcome]:
+def _ray_map(fn, items, workers: int, initializer, initargs: tuple, address: str | None) -> Iterator:
     ray = import_ray()
     from ray.util import ActorPool
 
     started = connect_ray(address, workers)
     actor = ray.remote(num_cpus=1)(RayWorker)
-    shared = ray.put(shared_state(config))  # one copy in the object store for every actor
-    actors = [actor.remote(config.model_dump_json(), export, shared) for _ in range(workers)]
-    pool = ActorPool(actors)  # hands each proposal to an idle actor; get_next() keeps submission order
+    shared = ray.put(initargs)  # one copy in the object store for every actor
+    actors = [actor.remote(initializer, shared) for _ in range(workers)]
+    pool = ActorPool(actors)  # hands each item to an idle actor; get_next() keeps submission order
     try:
         in_flight = 0
-        for proposal in proposals:
-            pool.submit(lambda a, p: a.work.remote(p), proposal)
+        for item in items:
+            pool.submit(lambda a, x: a.call.remote(fn, x), item)
             in_flight += 1
             if in_flight >= IN_FLIGHT_PER_WORKER * workers:
                 in_flight -= 1

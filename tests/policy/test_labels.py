@@ -136,3 +136,12 @@ def test_a_store_keeps_every_row_and_reuses_other_label_files(tmp_path: Path):
     assert {r["scene_sha256"] for r in first + second} <= {r["scene_sha256"] for r in stored}
     by_key = {(r["scene_sha256"], r["primitive"]): r["success"] for r in pq.read_table(committed).to_pylist()}
     assert all(by_key[(r["scene_sha256"], r["primitive"])] == r["success"] for r in first + second)
+
+
+def test_ray_actors_label_the_same_file(labelled: Path, demo_batch: Path, tmp_path: Path):
+    """`scenegen label --backend ray` (a local Ray cluster, 2 actors) writes the local run's bytes."""
+    pytest.importorskip("ray")  # the `ray` extra: CI installs it (make setup)
+    out = tmp_path / "labels.parquet"
+    argv = ["label", str(demo_batch), "--out", str(out), "--limit", "2", "--primitives", *PRIMITIVES]
+    assert main([*argv, "--workers", "2", "--backend", "ray", "--quiet"]) == 0
+    assert out.read_bytes() == labelled.read_bytes()
