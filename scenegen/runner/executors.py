@@ -102,8 +102,8 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
     pool = ProcessPoolExecutor(
         workers,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=initializer,
-        initargs=initargs,
+        initializer=_pool_worker_start,
+        initargs=(os.getpid(), initializer, initargs),
     )
     try:
         pending: deque = deque()
@@ -115,6 +115,28 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
             yield pending.popleft().result()
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _pool_worker_start(coordinator: int, initializer, initargs: tuple) -> None:
+    """A pool worker's first act: die with its coordinator, then the caller's initializer."""
+    die_with_parent(coordinator)
+    if initializer is not None:
+        initializer(*initargs)
+
+
+def die_with_parent(parent: int) -> None:
+    """Have the kernel SIGKILL this process when its parent dies (Linux ``PR_SET_PDEATHSIG``), so a
+    coordinator killed with SIGKILL leaves no worker behind; exit now if ``parent`` is already gone.
+    Elsewhere, nothing (the pool's own broken-pipe handling ends idle workers)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before the call above took effect
+        os._exit(1)
 
 
 def _torch_threads(n: int) -> int | None:

@@ -374,3 +374,88 @@ def test_ray_backend_without_ray_says_how_to_install_it(
     assert code == USAGE_ERROR and err.count("\n") == 1, err
     assert "pip install 'scenegen[ray]'" in err
     assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------- no orphans
+
+
+def children_of(pid: int) -> dict[int, str]:
+    """Live (not zombie) child processes of ``pid``: pid -> command line."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+            cmdline = (stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        fields = text[text.rfind(")") + 2 :].split()
+        if int(fields[1]) == pid and fields[0] not in ("Z", "X"):
+            found[int(stat.parent.name)] = cmdline
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return text[text.rfind(")") + 2 :].split()[0] not in ("Z", "X")
+
+
+def test_no_pool_worker_outlives_a_killed_coordinator(recipe: Path, tmp_path: Path):
+    """SIGKILL of the coordinator alone (not its process group): its spawn workers die with it
+    (PR_SET_PDEATHSIG), and so does multiprocessing's resource tracker (its pipe closes)."""
+    out = tmp_path / "batch"
+    proc = subprocess.Popen(
+        generate_cmd(recipe, out, workers=2), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    deadline = time.monotonic() + 120
+    workers: dict[int, str] = {}
+    while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
+        workers = {p: c for p, c in children_of(proc.pid).items() if "spawn_main" in c}
+        time.sleep(0.05)
+    assert len(workers) == 2, f"the pool did not start: {children_of(proc.pid)}"
+    everyone = children_of(proc.pid)
+    proc.kill()
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 10
+    while any(alive(p) for p in everyone) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    left = {p: everyone[p] for p in everyone if alive(p)}
+    for p in left:  # do not leak them into the rest of the run
+        os.kill(p, signal.SIGKILL)
+    assert not left, f"processes of the killed coordinator still alive after 10 s: {left}"
+
+
+def descendants_of(pid: int) -> dict[int, str]:
+    found, frontier = {}, {pid}
+    while frontier:
+        layer = {}
+        for parent in frontier:
+            layer.update(children_of(parent))
+        frontier = set(layer) - set(found)
+        found.update(layer)
+    return found
+
+
+def test_no_ray_actor_outlives_a_killed_coordinator(recipe: Path, tmp_path: Path):
+    """SIGKILL of a `--backend ray` coordinator: the local cluster it started (raylet, GCS, agents)
+    and its actors exit on their own once their driver and raylet are gone (measured: ~10 s)."""
+    pytest.importorskip("ray")
+    out = tmp_path / "batch"
+    cmd = [*generate_cmd(recipe, out, workers=2), "--backend", "ray"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 180
+    while count_rows(out / "index.jsonl") < 1 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    everyone = descendants_of(proc.pid)
+    assert sum("RayWorker" in c for c in everyone.values()) == 2, everyone
+    proc.kill()
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 60
+    while any(alive(p) for p in everyone) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = {p: everyone[p] for p in everyone if alive(p)}
+    for p in left:
+        os.kill(p, signal.SIGKILL)
+    assert not left, f"processes of the killed Ray coordinator still alive after 60 s: {left}"
