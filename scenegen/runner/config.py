@@ -139,6 +139,25 @@ def _format_error(path: Path, exc: ValidationError) -> str:
     return f"{path}: {where + ': ' if where else ''}{msg}{more}"
 
 
+def _check_overridden(path: Path, raw: dict, overrides: dict) -> None:
+    """A recipe value that a command-line option replaces must still be valid: a wrong ``n:`` is a
+    mistake in the file, not something ``--n`` may hide."""
+    from pydantic import TypeAdapter
+
+    for key in overrides.keys() & raw.keys():
+        field = PipelineConfig.model_fields.get(key)
+        if field is None:
+            continue
+        annotation = Annotated[(field.annotation, *field.metadata)] if field.metadata else field.annotation
+        try:
+            TypeAdapter(annotation).validate_python(raw[key])
+        except ValidationError as exc:
+            msg = exc.errors()[0]["msg"]
+            option = "--" + key.replace("_", "-")
+            where = f"{path}: {key}"
+            raise ConfigError(f"{where}: {msg} (the recipe's own value, which {option} replaces)") from None
+
+
 def load_pipeline(
     path: str | Path,
     overrides: dict | None = None,
@@ -155,7 +174,14 @@ def load_pipeline(
     if not path.is_file():
         raise ConfigError(f"{path}: no such pipeline file; bundled ones are in pipelines/")
     try:
-        raw = yaml.safe_load(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        reason = f"not a UTF-8 text file (byte {exc.start}); a recipe is YAML text"
+        raise ConfigError(f"{path}: {reason}") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    try:
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = f" line {mark.line + 1}" if mark else ""
@@ -164,7 +190,9 @@ def load_pipeline(
         raise ConfigError(
             f"{path}: a pipeline file must be a mapping of keys (name, n, seed, condition, ...)"
         )
-    raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    _check_overridden(path, raw, overrides)
+    raw.update(overrides)
     if request is not None:
         try:
             parsed = parse_request(request)

@@ -196,12 +196,12 @@ def parse_request(text: str) -> dict:
             _set_once(out, "robot_pose", word)
         elif word not in _FILLER:
             raise ValueError(
-                f"text: cannot place the word {word!r}; use task names ({', '.join(TASKS)}), "
+                f"text: cannot place the word {_shown(word)}; use task names ({', '.join(TASKS)}), "
                 f"targets ({', '.join(sorted(categories))}), tags ({', '.join(TAGS)}), 'not' before a "
                 f"tag, or robot poses ({', '.join(ROBOT_POSES)})"
             )
         if negate and word not in _NEGATIONS:
-            raise ValueError(f"text: 'not' must be followed by a tag, got {word!r}")
+            raise ValueError(f"text: 'not' must be followed by a tag, got {_shown(word)}")
         i += 1
     if negate:
         raise ValueError("text: 'not' at the end must be followed by a tag")
@@ -216,6 +216,11 @@ def _canonical(key: str, value):
         pose = ROBOT_POSES.get(value, value) if isinstance(value, str) else value
         return tuple(round(float(q), 6) for q in pose)
     return value
+
+
+def _shown(word: str, limit: int = 32) -> str:
+    """A word of the user's request as an error message quotes it: at most ``limit`` characters."""
+    return repr(word) if len(word) <= limit else repr(word[:limit]) + f"... ({len(word)} characters)"
 
 
 def _set_once(out: dict, key: str, value: str) -> None:

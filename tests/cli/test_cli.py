@@ -157,6 +157,34 @@ def test_yaml_list_instead_of_mapping(tmp_path: Path, capsys):
     assert_usage_error(code, captured.out, captured.err, out, [str(pipeline), "mapping"])
 
 
+def test_binary_recipe_is_named_not_a_traceback(tmp_path: Path, capsys):
+    pipeline = tmp_path / "binary.yaml"
+    pipeline.write_bytes(bytes(range(256)) * 4)
+    out = tmp_path / "out"
+    code = main(["generate", str(pipeline), "--out", str(out)])
+    captured = capsys.readouterr()
+    assert_usage_error(code, captured.out, captured.err, out, [str(pipeline), "not a UTF-8 text file"])
+
+
+def test_an_override_does_not_hide_a_wrong_recipe_value(tmp_path: Path, capsys):
+    recipe = copy.deepcopy(demo_recipe())
+    recipe["n"] = "many"
+    pipeline = tmp_path / "wrong_n.yaml"
+    pipeline.write_text(yaml.safe_dump(recipe))
+    out = tmp_path / "out"
+    code = main(["generate", str(pipeline), "--n", "1", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert_usage_error(code, captured.out, captured.err, out, [str(pipeline), "n: ", "valid integer", "--n"])
+
+
+def test_a_long_unknown_word_is_shortened_in_the_error(tmp_path: Path, capsys):
+    out = tmp_path / "out"
+    code = main(["generate", str(DEMO), "--request", "retrieve the " + "x" * 5000, "--out", str(out)])
+    captured = capsys.readouterr()
+    assert_usage_error(code, captured.out, captured.err, out, ["--request", "5000 characters"])
+    assert len(captured.err) < 500
+
+
 @pytest.mark.parametrize(
     ("option", "value", "field", "bound"),
     [
