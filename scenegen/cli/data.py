@@ -158,9 +158,11 @@ def reference(args: argparse.Namespace) -> int:
     if args.workers < 1:
         return fail(f"--workers {args.workers}: must be at least 1")
     from scenegen.data.reference import build_reference, read_reference, tag_rates
+    from scenegen.runner.executors import backend_session
 
     try:
-        stats = build_reference(config, args.out, args.workers, not args.quiet, backend)
+        with backend_session(backend, args.workers):
+            stats = build_reference(config, args.out, args.workers, not args.quiet, backend)
     except BackendError as exc:
         return fail(str(exc))
     table, _ = read_reference(args.out)

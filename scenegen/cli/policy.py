@@ -121,21 +121,24 @@ def label(args: argparse.Namespace) -> int:
         return fail("--per-cell N and --categories go together: name the categories whose cells to fill")
     if args.per_cell is not None and args.per_cell < 1:
         return fail("--per-cell must be at least 1")
+    from scenegen.runner.executors import backend_session
+
     try:
-        stats = label(
-            args.scenes,
-            args.out,
-            primitives=args.primitives,
-            split=None if args.split == "all" else args.split,
-            limit=args.limit,
-            workers=args.workers,
-            progress=not args.quiet,
-            per_tag=args.per_tag,
-            observation=args.observation,
-            per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
-            outside_panels=args.outside_panels,
-            backend=backend,
-        )
+        with backend_session(backend, args.workers):
+            stats = label(
+                args.scenes,
+                args.out,
+                primitives=args.primitives,
+                split=None if args.split == "all" else args.split,
+                limit=args.limit,
+                workers=args.workers,
+                progress=not args.quiet,
+                per_tag=args.per_tag,
+                observation=args.observation,
+                per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
+                outside_panels=args.outside_panels,
+                backend=backend,
+            )
     except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))
     print(f"{stats['rows']} rows ({stats['ran']} run, {stats['reused']} reused) -> {stats['out']}")

@@ -84,11 +84,13 @@ def generate(args: argparse.Namespace) -> int:
         if problem:
             return fail(problem)
 
+    from scenegen.runner.executors import backend_session
     from scenegen.runner.pipeline import run_batch
     from scenegen.store.batch import StoreError
 
     try:
-        summary = run_batch(config, out, workers=args.workers, progress=not args.quiet, backend=backend)
+        with backend_session(backend, args.workers):
+            summary = run_batch(config, out, workers=args.workers, progress=not args.quiet, backend=backend)
     except (StoreError, BackendError) as exc:
         return fail(str(exc))
     rejected = sum(summary.rejections.values())

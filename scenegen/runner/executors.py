@@ -10,9 +10,11 @@ actor holding one CPU. Closing the generator stops the workers.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
+import socket
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -169,6 +171,36 @@ def import_ray():
     return ray
 
 
+@contextlib.contextmanager
+def backend_session(backend: Backend, workers: int):
+    """Connect a Ray backend before any work starts (so an unreachable cluster is an error before a
+    file is written) and shut down at the end what this started; nothing for the local backend."""
+    if backend.kind != "ray":
+        yield
+        return
+    started = connect_ray(backend.address, workers)
+    try:
+        yield
+    finally:
+        if started:
+            import_ray().shutdown()
+
+
+def _check_reachable(address: str) -> None:
+    """A one-line error now, rather than Ray's minutes of retries, when nothing listens at HOST:PORT."""
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    if not host or not port.isdigit():
+        return  # "auto" and the like: Ray resolves them itself
+    try:
+        socket.create_connection((host, int(port)), timeout=5).close()
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        raise BackendError(
+            f"--address {address}: no Ray cluster answers there ({reason}); start one with "
+            "`ray start --head` or check HOST:PORT"
+        ) from None
+
+
 def connect_ray(address: str | None, num_cpus: int) -> bool:
     """Join the cluster at ``address``, or start a local one with ``num_cpus`` CPUs; nothing when
     Ray is already initialized in this process. True when this call connected (the caller shuts down)."""
@@ -184,6 +216,8 @@ def connect_ray(address: str | None, num_cpus: int) -> bool:
         logging_level=logging.ERROR,
         runtime_env={"env_vars": env},
     )
+    if address:
+        _check_reachable(address)
     try:
         if address:
             ray.init(address=address, **options)

@@ -469,3 +469,15 @@ def test_no_ray_actor_outlives_a_killed_coordinator(recipe: Path, tmp_path: Path
     for p in left:
         os.kill(p, signal.SIGKILL)
     assert not left, f"Ray's agents still alive 150 s after their raylet: {left}"
+
+
+def test_an_unreachable_ray_cluster_is_a_one_line_error_before_any_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+):
+    pytest.importorskip("ray")
+    recipe = small_recipe(tmp_path / "small.yaml")
+    args = ["generate", str(recipe), "--out", str(tmp_path / "out"), "--backend", "ray", "--quiet"]
+    assert main([*args, "--address", "127.0.0.1:9"]) == USAGE_ERROR  # the discard port: nothing listens
+    err = capsys.readouterr().err
+    assert err.startswith(PREFIX) and "127.0.0.1:9" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
