@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo test test-fast test-full audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
+.PHONY: setup install-exporters demo test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -41,6 +41,10 @@ test-fast: setup install-exporters  ## everything but the slow end-to-end tests
 test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)
 	$(BIN)/python -m pytest -q --full -m full
 
+fuzz: setup  ## the long fuzzing profile: 1,000 examples per input kind through the CLI (tests/fuzz; report in runs/fuzz/report.json)
+	mkdir -p runs/fuzz
+	SCENEGEN_FUZZ=long SCENEGEN_FUZZ_REPORT=runs/fuzz/report.json $(BIN)/python -m pytest -q -p no:cacheprovider tests/fuzz
+
 audit: setup  ## verify data_manifest.yaml against the files (scenegen audit)
 	$(BIN)/scenegen audit data_manifest.yaml
 
@@ -50,6 +54,13 @@ lint: setup
 
 bench: setup  ## pipeline throughput: baseline commit vs this checkout, 1 and 2 workers, Ray (benchmarks/pipeline_throughput.py, ~10 min)
 	$(BIN)/python benchmarks/pipeline_throughput.py
+
+bench-soak: setup  ## memory over a long batch: 3,000 scenes without rendering, 500 with, RSS every 100 (benchmarks/soak.py, ~30 min)
+	$(BIN)/python benchmarks/soak.py
+
+kill: setup  ## the kill harness in full: 20 random SIGKILLs per command, 5 for the tiny transfer experiment (tests/kill, <= 60 min)
+	mkdir -p runs/kill
+	SCENEGEN_KILL_POINTS=20 SCENEGEN_KILL_TRANSFER_POINTS=5 SCENEGEN_KILL_REPORT=runs/kill/report.json $(BIN)/python -m pytest -q -p no:cacheprovider tests/kill
 
 bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and the generator (benchmarks/rare_case_yield.py)
 	$(BIN)/python benchmarks/rare_case_yield.py

@@ -15,6 +15,7 @@ import yaml
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
 from scenegen.core.placement import quat_mul, snap_to_rest, yaw_quat
+from scenegen.paths import PROJECT_ROOT
 from scenegen.propose.procedural import DEFAULT_CAMERAS
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import Camera, FurniturePlacement, Lighting, ObjectPlacement, SceneProposal
@@ -131,3 +132,22 @@ def small_recipe(
         recipe["proposer"]["n_objects"] = n_objects
     path.write_text(yaml.safe_dump(recipe, sort_keys=False))
     return path
+
+
+def project_with(batch: Path, root: Path) -> Path:
+    """A project folder ``root`` holding a copy of ``batch`` (its shared meshes hard-linked, never
+    written) added to the folder's own data_manifest.yaml (the project's datasheet and transfer
+    section, no other sources); returns the manifest's path. The copy is ``root``/batch."""
+    import os
+    import shutil
+
+    from scenegen.cli import main
+
+    shutil.copytree(batch, root / "batch", ignore=shutil.ignore_patterns("_assets"))
+    shutil.copytree(batch / "_assets", root / "batch" / "_assets", copy_function=os.link)
+    manifest = yaml.safe_load((PROJECT_ROOT / "data_manifest.yaml").read_text())
+    manifest = {k: v for k, v in manifest.items() if k not in ("models", "recipes")} | {"sources": []}
+    (root / "data_manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
+    code = main(["manifest", "add", str(root / "batch"), "--to", str(root / "data_manifest.yaml")])
+    assert code == 0, f"scenegen manifest add exited {code}"
+    return root / "data_manifest.yaml"

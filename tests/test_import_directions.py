@@ -32,6 +32,8 @@ CORE_LIBRARIES = {
     "fcl",
     "pyarrow",
     "hashlib",
+    "json",
+    "re",
     "pathlib",
     "math",
     "functools",

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from scenegen.store.batch import INDEX, read_jsonl
+from scenegen.core.files import OutsideRootError, confined
+from scenegen.store.batch import INDEX, StoreError, scene_dirs
 
 THUMB = (320, 240)  # width, height of one thumbnail
 LABEL_HEIGHT = 34
@@ -46,10 +46,28 @@ def _seg_view(seg: np.ndarray) -> np.ndarray:
 
 
 def _read(path: Path, flags: int) -> np.ndarray:
+    try:
+        confined(path, path.parent.parent, "an image")  # batch/scene_NNNNNN/IMAGE
+    except OutsideRootError as exc:
+        raise SheetError(str(exc)) from None
     image = cv2.imread(str(path), flags) if path.is_file() else None
     if image is None:
         raise SheetError(f"{path}: missing or unreadable image; was the batch generated with --no-render?")
     return image
+
+
+def _record(path: Path) -> dict:
+    """A stored scene.json, validated (SheetError naming it otherwise)."""
+    from pydantic import ValidationError
+
+    from scenegen.schema.scene import SceneRecord
+
+    try:
+        return SceneRecord.model_validate_json(path.read_bytes()).model_dump(mode="json")
+    except FileNotFoundError:
+        raise SheetError(f"{path}: missing; is the batch complete?") from None
+    except (ValidationError, OSError, ValueError) as exc:
+        raise SheetError(f"{path}: not a scene record ({str(exc).splitlines()[0][:100]})") from None
 
 
 def contact_sheet(
@@ -63,13 +81,15 @@ def contact_sheet(
 ) -> Path:
     """Write a PNG grid of the batch's scenes (in index order) and return its path."""
     batch = Path(batch)
-    rows = read_jsonl(batch / INDEX)
-    if not rows:
+    try:
+        scenes = scene_dirs(batch)
+    except StoreError as exc:
+        raise SheetError(str(exc)) from None
+    if not scenes:
         raise SheetError(f"{batch}: no {INDEX} with stored scenes; run `scenegen generate` first")
     tiles = []
-    for row in rows[: max(limit, 1)]:
-        scene_dir = batch / row["scene_id"]
-        record = json.loads((scene_dir / "scene.json").read_text())
+    for row, scene_dir in scenes[: max(limit, 1)]:
+        record = _record(scene_dir / "scene.json")
         cam = camera or record["cameras"][0]["name"]
         if cam not in {c["name"] for c in record["cameras"]}:
             valid = ", ".join(c["name"] for c in record["cameras"])

@@ -19,18 +19,17 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import re
 from collections import Counter
 from pathlib import Path
 
 import yaml
 
+from scenegen.core.files import SCENE_ID
 from scenegen.manifest.derive import CHAINED_FILES, RECIPE_FILE, checksum_root
 from scenegen.manifest.io import inside
 from scenegen.manifest.schema import Source
 from scenegen.store.batch import ASSETS, INDEX, REJECTIONS
 
-SCENE_ID = re.compile(r"^scene_\d{6}$")
 # Fields of a batch source that must equal the source re-derived from the batch's files.
 DERIVED_FIELDS = (
     "origin",

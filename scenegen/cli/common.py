@@ -13,9 +13,19 @@ def first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+MAX_ERROR = 300  # characters of the whole error line
+
+
 def fail(message: str) -> int:
-    """Print ``scenegen: error: MESSAGE`` on stderr (one line) and return the usage-error code."""
-    print(f"scenegen: error: {message}", file=sys.stderr)
+    """Print ``scenegen: error: MESSAGE`` on stderr and return the usage-error code. One line of at
+    most MAX_ERROR characters: further lines are dropped, and an overlong line keeps its first two
+    thirds (the file, the field, what is wrong) and its last third (what to do) around a `` ... ``."""
+    text = message.strip()
+    line = "scenegen: error: " + (text.splitlines()[0] if text else "failed")
+    if len(line) > MAX_ERROR:
+        head = (MAX_ERROR - 5) * 2 // 3
+        line = line[:head] + " ... " + line[len(line) - (MAX_ERROR - 5 - head) :]
+    print(line, file=sys.stderr)
     return USAGE_ERROR
 
 

@@ -240,8 +240,12 @@ def manifest(args: argparse.Namespace) -> int:
         return fail(f"{batch_manifest}: missing; is {args.batch} a batch written by `scenegen generate`?")
     report = audit(batch_manifest)
     if not report.ok:
-        print(report.to_text(), file=sys.stderr)
-        return fail(f"{args.batch}: fails its audit ({len(report.violations)} violations); nothing was added")
+        more = len(report.violations) - 1
+        return fail(
+            f"{args.batch}: fails its audit, nothing was added: {report.violations[0]}"
+            + (f" (+{more} more)" if more else "")
+            + f"; see `scenegen audit {batch_manifest}`"
+        )
     try:
         (source,) = read_manifest(batch_manifest).sources
         source = relocate(source, args.batch, args.to, args.name)

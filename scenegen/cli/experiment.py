@@ -46,13 +46,23 @@ def add_commands(sub) -> None:
     tr.add_argument("--no-manifest", action="store_true", help="write no manifest")
     tr.add_argument("--workers", type=int, help="processes for labelling, generation and evaluation")
     tr.add_argument("--stop-after", choices=STAGES, help="stop after this stage (to build caches in steps)")
+    tr.add_argument(
+        "--check",
+        action="store_true",
+        help="only validate the configuration and the files and recipes it names; writes nothing",
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(run=transfer)
 
 
 def transfer(args: argparse.Namespace) -> int:
     from scenegen.experiment.transfer import TransferError, run_transfer
-    from scenegen.experiment.transfer_config import TransferConfigError, load_transfer_config
+    from scenegen.experiment.transfer_config import (
+        ARMS,
+        TransferConfigError,
+        check_inputs,
+        load_transfer_config,
+    )
 
     overrides = {"out": args.out, "cache": args.cache, "manifest": args.manifest, "workers": args.workers}
     try:
@@ -61,6 +71,19 @@ def transfer(args: argparse.Namespace) -> int:
         )
         if args.no_manifest:
             config = config.model_copy(update={"manifest": None})
+        try:
+            check_inputs(config)  # before anything is written
+        except TransferConfigError as exc:
+            raise TransferConfigError(f"{args.config}: {exc}") from None
+        if args.check:
+            sweep = f", alpha sweep {list(config.alpha_sweep)}" if config.alpha_sweep else ""
+            arms = ", ".join(ARMS) + sweep
+            print(
+                f"{args.config}: valid. arms {arms}; {len(config.training.seeds)} training seeds, "
+                f"{config.training.steps} steps; sizes A {config.sizes.a}, A+ {config.sizes.a_plus}, "
+                f"extra {config.sizes.extra}; -> {config.out}"
+            )
+            return 0
         metrics = run_transfer(config, progress=not args.quiet, stop_after=args.stop_after)
     except (TransferConfigError, TransferError, FileNotFoundError) as exc:
         return fail(str(exc).splitlines()[0])

@@ -43,6 +43,12 @@ def add_commands(sub) -> None:
     )
     add_backend_arguments(gen)
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
+    gen.add_argument(
+        "--check",
+        action="store_true",
+        help="only validate: read the recipe (request, overrides and proposer applied), load its "
+        "generator checkpoint, print what would run; writes nothing",
+    )
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.set_defaults(run=generate)
 
@@ -76,7 +82,22 @@ def generate(args: argparse.Namespace) -> int:
         config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
     except (ConfigError, CatalogError, BackendError) as exc:
         return fail(str(exc))
+    if config.proposer.kind == "diffusion":
+        from scenegen.propose.diffusion import load_generator
+
+        try:
+            load_generator(config.proposer)  # a checkpoint that does not load fails before any file
+        except ValueError as exc:
+            return fail(str(exc))
     out = args.out or Path("runs") / config.name
+    if args.check:
+        tags = ", ".join(f"{t}={v}" for t, v in config.condition.tags.items() if v != "unspecified") or "none"
+        print(
+            f"{args.pipeline}: valid. {config.n} scenes of {config.condition.task} {config.condition.target} "
+            f"(tags: {tags}) by the {config.proposer.kind} proposer, seed {config.seed}, at most "
+            f"{config.proposal_cap} proposals, render {'on' if config.render else 'off'} -> {out}"
+        )
+        return 0
     if config.render:
         from scenegen.render.offscreen import gl_problem
 

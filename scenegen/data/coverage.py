@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenegen.core.files import SCENE_ID
 from scenegen.schema.condition import TAGS, TASKS
 
 SPARSE_COUNT = 20  # a cell with fewer scenes than this is sparse
@@ -199,7 +200,10 @@ def _batch(path: Path) -> CoverageTable:
                 f"{path / INDEX}: line {n} is not an index row with scene_id and tags; a killed batch is "
                 "repaired by rerunning its `scenegen generate` command"
             ) from None
-        scene_json = path / scene_id / "scene.json"
+        scene_json = path / str(scene_id) / "scene.json"
+        if not SCENE_ID.match(str(scene_id)) or not scene_json.resolve().is_relative_to(path.resolve()):
+            shown = str(scene_id)[:40]
+            raise CoverageError(f"{path / INDEX}: line {n}: scene_id {shown!r} is not a scene of this batch")
         try:
             task = json.loads(scene_json.read_text())["condition"]["task"]
         except FileNotFoundError:
@@ -236,8 +240,8 @@ def _manifest(path: Path) -> CoverageTable:
         location = (folder / source.location).resolve()
         if not location.is_relative_to(folder):
             raise CoverageError(
-                f"{path}: source {source.name!r}: location {source.location!r} resolves to {location}, "
-                f"outside the manifest's folder {folder}; a manifest may only name data inside its folder"
+                f"{path}: source {source.name!r}: location {source.location!r} lies outside the manifest's "
+                "folder; a manifest may only name data inside its folder"
             )
         located.append((source, location))
     table = _empty(str(path))

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
 # Tag states as model inputs. NULL is the dropped field, used for the unconditional branch.
@@ -29,16 +29,16 @@ class DenoiserConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    object_width: int
-    scene_width: int
-    slots: int
-    n_tasks: int
-    n_targets: int
-    n_tags: int
-    pose_dim: int = 7
-    d_model: int = 128
-    layers: int = 4
-    heads: int = 4
+    object_width: int = Field(ge=1, le=4096)
+    scene_width: int = Field(ge=1, le=4096)
+    slots: int = Field(ge=1, le=1024)
+    n_tasks: int = Field(ge=1, le=1024)
+    n_targets: int = Field(ge=1, le=1024)
+    n_tags: int = Field(ge=1, le=1024)
+    pose_dim: int = Field(7, ge=1, le=64)
+    d_model: int = Field(128, ge=1, le=4096)
+    layers: int = Field(4, ge=1, le=64)
+    heads: int = Field(4, ge=1, le=64)
 
 
 @dataclass

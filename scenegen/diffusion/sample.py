@@ -19,7 +19,6 @@ initial noise, which the caller draws from its own generator per sample.
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -31,19 +30,24 @@ Cost = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (objects, scene) 
 
 
 def load_denoiser(checkpoint: Path) -> tuple[Denoiser, dict]:
-    """The EMA denoiser of a checkpoint directory and its config.json (safetensors + JSON only)."""
+    """The EMA denoiser of a checkpoint directory and its config.json (safetensors + JSON only);
+    CheckpointError (one line, naming the file) when the folder does not hold a loadable generator."""
     from safetensors.torch import load_file
 
+    from scenegen.core.files import checkpoint_error, read_checkpoint_config
+
     checkpoint = Path(checkpoint)
-    config_path, weights = checkpoint / "config.json", checkpoint / "model.safetensors"
-    for path in (config_path, weights):
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path}: missing; a checkpoint directory holds config.json and model.safetensors"
-            )
-    config = json.loads(config_path.read_text())
-    model = Denoiser(DenoiserConfig(**config["denoiser"]))
-    model.load_state_dict(load_file(str(weights)))
+    remedy = "retrain it (scenegen train --out DIR) or restore it"
+    config = read_checkpoint_config(checkpoint, "generator", remedy)
+    try:
+        model = Denoiser(DenoiserConfig(**config["denoiser"]))
+    except (KeyError, TypeError, ValueError, AssertionError, RuntimeError) as exc:  # torch asserts sizes
+        raise checkpoint_error(checkpoint / "config.json", exc, remedy) from None
+    weights = checkpoint / "model.safetensors"
+    try:
+        model.load_state_dict(load_file(str(weights)))
+    except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+        raise checkpoint_error(weights, exc, remedy) from None
     return model.eval().requires_grad_(False), config
 
 

@@ -24,7 +24,7 @@ from scenegen.schema.scene import (
     ObjectPlacement,
     SceneRecord,
 )
-from scenegen.store.batch import INDEX, read_jsonl
+from scenegen.store.batch import StoreError, scene_dirs
 
 
 class SceneSourceError(ValueError):
@@ -94,9 +94,11 @@ def stored_scene(scene_dir: Path, source: str | None = None) -> EnvScene:
 def batch_scenes(batch: Path, source: str | None = None) -> list[EnvScene]:
     """Every accepted scene of a stored batch, in index order."""
     batch = Path(batch)
-    if not (batch / INDEX).is_file():
-        raise SceneSourceError(f"{batch}: no {INDEX} (give a batch directory written by `scenegen generate`)")
-    return [stored_scene(batch / row["scene_id"], source or batch.name) for row in read_jsonl(batch / INDEX)]
+    try:
+        folders = scene_dirs(batch)
+    except StoreError as exc:
+        raise SceneSourceError(str(exc)) from None
+    return [stored_scene(folder, source or batch.name) for _, folder in folders]
 
 
 def reference_scene(row: dict, source: str = "reference") -> EnvScene:

@@ -30,7 +30,7 @@ from scenegen.core.files import load_rows
 from scenegen.env.mixture import MixtureRecipe
 from scenegen.env.scenes import EnvScene, batch_scenes, reference_scene
 from scenegen.experiment.closed_loop import NOMINAL, ObservationStore, PathStore, Variant, Workers
-from scenegen.experiment.transfer_config import TransferConfig
+from scenegen.experiment.transfer_config import TransferConfig, check_inputs
 from scenegen.experiment.transfer_sources import (
     choose_reference_sets,
     generate_cells,
@@ -233,6 +233,7 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     from scenegen.experiment.transfer_report import finish
     from scenegen.policy.network import PrimitivePolicy
 
+    check_inputs(config)  # a configuration naming missing files fails before anything is written
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
     # what decides the results (the worker count does not: the run's outputs do not depend on it)

@@ -146,3 +146,25 @@ def load_transfer_config(path: Path | None, overrides: dict | None = None) -> Tr
         where = ".".join(str(p) for p in error["loc"]) or "(top level)"
         message = error["msg"].removeprefix("Value error, ")
         raise TransferConfigError(f"{path or 'configuration'}: {where}: {message}"[:300]) from None
+
+
+def check_inputs(config: TransferConfig) -> None:
+    """The files a configuration names exist and its recipes validate; TransferConfigError (one
+    line, naming the key) otherwise. Called before the run writes anything."""
+    from scenegen.runner.config import ConfigError, load_pipeline
+
+    for key, path in (("reference", config.reference), ("panels", config.panels)):
+        if not Path(path).is_file():
+            raise TransferConfigError(f"{key}: {path}: no such file")
+    for i, path in enumerate(config.reuse_labels):
+        if not Path(path).is_file():
+            raise TransferConfigError(f"reuse_labels.{i}: {path}: no such label file")
+    for key in ("recipe", "diffusion"):
+        try:
+            recipe = load_pipeline(getattr(config.generation, key))
+        except ConfigError as exc:
+            raise TransferConfigError(f"generation.{key}: {exc}") from None
+        if key == "diffusion" and recipe.proposer.kind != "diffusion":
+            raise TransferConfigError(
+                f"generation.diffusion: a {recipe.proposer.kind} recipe; name one of the diffusion proposer"
+            )

@@ -24,8 +24,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from scenegen import __version__
-from scenegen.core.files import sha256_file
-from scenegen.store.batch import ASSETS, INDEX, read_jsonl
+from scenegen.core.files import OutsideRootError, confined, sha256_file
+from scenegen.store.batch import ASSETS, StoreError, scene_dirs
 
 EXPORT_FILE = "export.json"
 SCENES_PER_SHARD = 100
@@ -36,22 +36,30 @@ class ExportError(ValueError):
     """An export that cannot be made; the message names the file and what to do."""
 
 
-def _scene_sample(scene_dir: Path) -> dict:
+def _scene_sample(scene_dir: Path, batch: Path) -> dict:
     sample = {"__key__": scene_dir.name}
     for path in sorted(scene_dir.iterdir()):
         if path.is_file() and (path.name in SCENE_FILES or path.suffix == ".png"):
-            sample[path.name] = path.read_bytes()
+            sample[path.name] = _read_inside(path, batch)
     missing = [name for name in SCENE_FILES if name not in sample]
     if missing:
         raise ExportError(f"{scene_dir}: missing {', '.join(missing)}; is the batch complete?")
     return sample
 
 
-def _asset_samples(assets: Path) -> Iterator[dict]:
+def _read_inside(path: Path, batch: Path) -> bytes:
+    """The bytes of a batch's file; ExportError when it leads out of the batch (a symlink)."""
+    try:
+        return confined(path, batch, "a file to export").read_bytes()
+    except OutsideRootError as exc:
+        raise ExportError(str(exc)) from None
+
+
+def _asset_samples(assets: Path, batch: Path) -> Iterator[dict]:
     for path in sorted(assets.iterdir()):
         if path.name.count(".") != 1:  # WebDataset splits key and extension at the first dot
             raise ExportError(f"{path}: an asset name needs exactly one dot (key.ext) to be a sample")
-        yield {"__key__": path.stem, path.suffix[1:]: path.read_bytes()}
+        yield {"__key__": path.stem, path.suffix[1:]: _read_inside(path, batch)}
 
 
 def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER_SHARD) -> dict:
@@ -60,23 +68,25 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
     import webdataset as wds
 
     batch, out = Path(batch), Path(out)
-    if not (batch / INDEX).is_file():
-        raise ExportError(f"{batch}: no {INDEX}; give a batch directory written by `scenegen generate`")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ExportError(f"{out}: exists and is not an empty folder; choose a new --out")
     if scenes_per_shard < 1:
         raise ExportError(f"scenes_per_shard {scenes_per_shard}: must be at least 1")
-    rows = read_jsonl(batch / INDEX)
+    try:
+        scenes = scene_dirs(batch)
+    except StoreError as exc:
+        raise ExportError(str(exc)) from None
+    rows = [row for row, _ in scenes]
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp"))
     try:
         with wds.ShardWriter(str(tmp / "scenes-%06d.tar"), maxcount=scenes_per_shard, verbose=0) as sink:
-            for row in rows:
-                sink.write(_scene_sample(batch / row["scene_id"]))
+            for _, scene_dir in scenes:
+                sink.write(_scene_sample(scene_dir, batch))
         assets = 0
         if (batch / ASSETS).is_dir():
             with wds.TarWriter(str(tmp / "assets-000000.tar")) as sink:
-                for sample in _asset_samples(batch / ASSETS):
+                for sample in _asset_samples(batch / ASSETS, batch):
                     sink.write(sample)
                     assets += 1
         description = {
@@ -108,24 +118,37 @@ def _checksum_root(batch: Path) -> str | None:
     return getattr(source.checksums, "root", None)
 
 
+def _member_file(shard: Path, member: tarfile.TarInfo, name: str) -> str:
+    """``name`` (a shard member's file name) when it is a plain file name; ExportError otherwise (a
+    member named ``../x`` or ``/etc/x``, or a link, would write outside the folder it is rebuilt in)."""
+    if not member.isfile() or "/" in name or "\\" in name or name in ("", ".", ".."):
+        raise ExportError(f"{shard}: member {member.name[:80]!r} is not a plain file name; refused")
+    return name
+
+
 def rebuild_scene(export: Path, scene_id: str, into: Path) -> Path:
     """Write ``scene_id``'s files and the assets from the shards of ``export`` under ``into``; returns
-    the scene folder (its scene.xml loads with ``mujoco.MjModel.from_xml_path``)."""
+    the scene folder (its scene.xml loads with ``mujoco.MjModel.from_xml_path``). Every member name is
+    checked before anything is written: a member that would land outside ``into`` is an ExportError."""
     export, into = Path(export), Path(into)
-    (into / ASSETS).mkdir(parents=True, exist_ok=True)
+    files: dict[Path, bytes] = {}
     with tarfile.open(export / "assets-000000.tar") as tar:
         for member in tar.getmembers():
-            data = tar.extractfile(member)
-            if data is not None:
-                (into / ASSETS / Path(member.name).name).write_bytes(data.read())
+            name = _member_file(export / "assets-000000.tar", member, member.name)
+            files[into / ASSETS / name] = tar.extractfile(member).read()
+    folder = None
     for shard in sorted(export.glob("scenes-*.tar")):
         with tarfile.open(shard) as tar:
             members = [m for m in tar.getmembers() if m.name.startswith(f"{scene_id}.")]
-            if not members:
-                continue
-            folder = into / scene_id
-            folder.mkdir(parents=True, exist_ok=True)
-            for member in members:
-                (folder / member.name[len(scene_id) + 1 :]).write_bytes(tar.extractfile(member).read())
-            return folder
-    raise ExportError(f"{export}: no scene {scene_id!r} in its shards")
+            if members:
+                folder = into / scene_id
+                for member in members:
+                    name = _member_file(shard, member, member.name[len(scene_id) + 1 :])
+                    files[folder / name] = tar.extractfile(member).read()
+                break
+    if folder is None:
+        raise ExportError(f"{export}: no scene {scene_id!r} in its shards")
+    for path, data in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
+    return folder

@@ -109,15 +109,43 @@ class PrimitivePolicy(nn.Module):
 
     @classmethod
     def load(cls, folder: Path) -> PrimitivePolicy:
+        """The policy of a checkpoint folder; CheckpointError (one line, naming the file) otherwise."""
         from safetensors.torch import load_file
 
+        from scenegen.core.files import CheckpointError, checkpoint_error, read_checkpoint_config
+
         folder = Path(folder)
+        remedy = "train one with `scenegen policy train --out DIR`"
+        config = read_checkpoint_config(folder, "policy", remedy)
+        primitives, width = config.get("primitives"), config.get("width")
+        if not (isinstance(primitives, list) and primitives and all(isinstance(p, str) for p in primitives)):
+            raise CheckpointError(f"{folder / 'config.json'}: primitives: a list of primitive names expected")
+        if not (isinstance(width, int) and 2 <= width <= 1024):
+            raise CheckpointError(f"{folder / 'config.json'}: width: an integer from 2 to 1024 expected")
         try:
-            config = json.loads((folder / "config.json").read_text())
-            state = load_file(str(folder / "model.safetensors"))
-        except (FileNotFoundError, ValueError, OSError) as exc:
-            raise ValueError(f"{folder}: not a policy checkpoint ({str(exc).splitlines()[0]})") from None
-        model = cls(config["primitives"], config["width"], config.get("inputs", "rgbd"))
-        model.load_state_dict(state)
-        model.trained_on = config.get("training", {})
+            model = cls(primitives, width, config.get("inputs", "rgbd"))
+        except (KeyError, TypeError, ValueError, AssertionError, RuntimeError) as exc:
+            raise checkpoint_error(folder / "config.json", exc, remedy) from None
+        try:
+            model.load_state_dict(load_file(str(folder / "model.safetensors")))
+        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
+        training = config.get("training", {})
+        coverage = training.get("coverage", []) if isinstance(training, dict) else None
+        if not isinstance(coverage, list) or not all(_coverage_cell(cell) for cell in coverage):
+            raise CheckpointError(
+                f"{folder / 'config.json'}: training.coverage: a list of [tag, category, count] expected; "
+                + remedy
+            )
+        model.trained_on = training
         return model.eval()
+
+
+def _coverage_cell(cell) -> bool:
+    """A ``[tag, category, count]`` entry of a checkpoint's training coverage."""
+    return (
+        isinstance(cell, list)
+        and len(cell) == 3
+        and all(isinstance(x, str) for x in cell[:2])
+        and isinstance(cell[2], int)
+    )

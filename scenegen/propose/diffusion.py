@@ -9,7 +9,6 @@ it (one batch), so it does not depend on how a batch is chunked, resumed or spre
 from __future__ import annotations
 
 import functools
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
@@ -30,11 +29,12 @@ def require_encoding(config: dict, checkpoint: str) -> None:
     """Raise ValueError when a checkpoint's config.json was made with another scene encoding."""
     from scenegen.diffusion.encoding import ENCODING_VERSION
 
-    version = config.get("encoding", {}).get("version", 1)
+    encoding = config.get("encoding", {})
+    version = encoding.get("version", 1) if isinstance(encoding, dict) else None
     if version != ENCODING_VERSION:
         raise ValueError(
-            f"{checkpoint}: made with scene encoding v{version}, this scenegen reads v{ENCODING_VERSION}; "
-            "retrain it (scenegen train --out DIR, see docs/generator.md)"
+            f"{checkpoint}: made with scene encoding v{str(version)[:20]}, this scenegen reads "
+            f"v{ENCODING_VERSION}; retrain it (scenegen train --out DIR, see docs/generator.md)"
         )
 
 
@@ -58,16 +58,15 @@ class DiffusionSettings(BaseModel):
     @field_validator("checkpoint")
     @classmethod
     def _exists(cls, checkpoint: str) -> str:
+        from scenegen.core.files import read_checkpoint_config
+
         path = Path(checkpoint) if Path(checkpoint).is_absolute() else PROJECT_ROOT / checkpoint
         if not (path / "model.safetensors").is_file() or not (path / "config.json").is_file():
             raise ValueError(
                 f"{checkpoint}: no checkpoint there (model.safetensors + config.json); "
                 "train one with `scenegen train --out DIR`"
             )
-        try:
-            config = json.loads((path / "config.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{checkpoint}: config.json unreadable ({exc}); retrain or restore it") from None
+        config = read_checkpoint_config(path, "generator", "train one with `scenegen train --out DIR`")
         require_encoding(config, checkpoint)
         return checkpoint
 
@@ -86,6 +85,14 @@ def _load(checkpoint: str):
     return load_denoiser(Path(checkpoint))
 
 
+def load_generator(settings: DiffusionSettings):
+    """The denoiser and config of the settings' checkpoint, loaded once per process; ValueError
+    (one line, naming the file) when it does not load or was made with another scene encoding."""
+    model, config = _load(str(settings.checkpoint_dir()))
+    require_encoding(config, settings.checkpoint)
+    return model, config
+
+
 @register_proposer("diffusion")
 class DiffusionProposer:
     """Samples whole scenes from the denoiser for a condition."""
@@ -95,11 +102,10 @@ class DiffusionProposer:
 
         self.settings = settings
         self.catalog = catalog
-        self.model, self.config = _load(str(settings.checkpoint_dir()))
+        self.model, self.config = load_generator(settings)
         self.encoding = SceneEncoding(catalog)
-        if self.config["encoding"]["assets"] != list(self.encoding.assets):
+        if self.config["encoding"].get("assets") != list(self.encoding.assets):
             raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
-        require_encoding(self.config, settings.checkpoint)
         self._group_key: tuple | None = None
         self._group: list = []
 

@@ -128,8 +128,15 @@ def _format_error(path: Path, exc: ValidationError) -> str:
         proposer = PROPOSER_SETTINGS[loc.pop(1)]  # pydantic names the union member: drop it
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "extra_forbidden":
-        valid = ", ".join(_fields_at(tuple(loc[:-1]), proposer))
-        msg = f"unknown key; valid keys here: {valid} (docs/pipelines.md)"
+        import difflib
+
+        valid = _fields_at(tuple(loc[:-1]), proposer)
+        close = difflib.get_close_matches(str(loc[-1]), valid, n=2)
+        shown = ", ".join(valid)
+        if len(shown) > 120:  # an error line holds 300 characters: the first keys and the count
+            shown = ", ".join(valid[:6]) + f", ... ({len(valid)} keys)"
+        hint = f"; did you mean {' or '.join(close)}?" if close else ""
+        msg = f"unknown key{hint}; valid keys here: {shown} (docs/pipelines.md)"
     elif err["type"] in ("union_tag_invalid", "union_tag_not_found"):
         loc.append("kind")
         kind = err.get("ctx", {}).get("tag")

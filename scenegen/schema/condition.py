@@ -195,10 +195,14 @@ def parse_request(text: str) -> dict:
         elif word in ROBOT_POSES:
             _set_once(out, "robot_pose", word)
         elif word not in _FILLER:
+            import difflib
+
+            close = difflib.get_close_matches(word, [*TASKS, *categories, *TAGS, *ROBOT_POSES], n=2)
+            hint = f" (did you mean {' or '.join(close)}?)" if close else ""
             raise ValueError(
-                f"text: cannot place the word {_shown(word)}; use task names ({', '.join(TASKS)}), "
-                f"targets ({', '.join(sorted(categories))}), tags ({', '.join(TAGS)}), 'not' before a "
-                f"tag, or robot poses ({', '.join(ROBOT_POSES)})"
+                f"text: cannot place the word {_shown(word)}{hint}; use task names ({', '.join(TASKS)}), "
+                f"tags ({', '.join(TAGS)}), 'not' before a tag, robot poses ({', '.join(ROBOT_POSES)}) "
+                f"or targets ({', '.join(sorted(categories))})"
             )
         if negate and word not in _NEGATIONS:
             raise ValueError(f"text: 'not' must be followed by a tag, got {_shown(word)}")

@@ -29,7 +29,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from scenegen.core.files import sha256_file
+from scenegen.core.files import SCENE_ID, OutsideRootError, confined, sha256_file
 from scenegen.schema.scene import Rejection, SceneRecord
 
 ASSETS = "_assets"
@@ -247,6 +247,78 @@ def read_jsonl(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
+def scene_dirs(batch: Path) -> list[tuple[dict, Path]]:
+    """Every (index row, scene directory) of a stored batch, in index order. StoreError (one line,
+    naming the file) when index.jsonl is missing or unreadable, a row's scene_id is not a scene name,
+    or a scene directory leads out of the batch (a symlink)."""
+    batch = Path(batch)
+    index = batch / INDEX
+    if not index.is_file():
+        raise StoreError(f"{batch}: no {INDEX}; give a batch directory written by `scenegen generate`")
+    out = []
+    try:
+        lines = index.read_bytes().decode("utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise StoreError(
+            f"{index}: unreadable ({type(exc).__name__}); regenerate or restore the batch"
+        ) from None
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except ValueError:
+            raise StoreError(f"{index}: line {number} is not JSON; regenerate or restore the batch") from None
+        scene_id = row.get("scene_id") if isinstance(row, dict) else None
+        if not isinstance(scene_id, str) or not SCENE_ID.match(scene_id):
+            shown = repr(scene_id)[:40]
+            raise StoreError(f"{index}: line {number}: scene_id {shown} is not a scene name (scene_NNNNNN)")
+        try:
+            out.append((row, confined(batch / scene_id, batch, "the scene directory")))
+        except OutsideRootError as exc:
+            raise StoreError(str(exc)) from None
+    return out
+
+
+def xml_references(scene_xml: Path) -> list[Path]:
+    """The files a stored scene.xml names (meshes, textures, includes), resolved as MuJoCo would:
+    against the compiler's meshdir / texturedir, relative to the scene.xml's folder."""
+    try:
+        root = ET.parse(scene_xml).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise StoreError(f"{scene_xml}: not readable XML ({str(exc).splitlines()[0][:80]})") from None
+    folder = Path(scene_xml).parent
+    compiler = root.find("compiler")
+    dirs = {"mesh": "meshdir", "skin": "meshdir", "texture": "texturedir", "hfield": "assetdir"}
+    refs = []
+    for element in root.iter():
+        if "file" not in element.attrib:
+            continue
+        base = (
+            compiler.get(dirs.get(element.tag, ""), compiler.get("assetdir", ""))
+            if compiler is not None
+            else ""
+        )
+        refs.append(folder / base / element.attrib["file"])
+    for key in ("meshdir", "texturedir", "assetdir"):
+        if compiler is not None and key in compiler.attrib:
+            refs.append(folder / compiler.attrib[key])
+    return refs
+
+
+def check_scene_xml(scene_dir: Path, batch: Path) -> Path:
+    """``scene_dir``/scene.xml when every file it names lies inside ``batch``; StoreError otherwise
+    (a scene.xml pointing at /etc or ../../ is refused before MuJoCo reads anything)."""
+    scene_xml = Path(scene_dir) / "scene.xml"
+    try:
+        confined(scene_xml, batch, "scene.xml")
+        for path in xml_references(scene_xml):
+            confined(path, batch, f"a file {scene_xml.name} names")
+    except OutsideRootError as exc:
+        raise StoreError(str(exc)) from None
+    return scene_xml
+
+
 def measure_stored_scene(scene_dir: Path, catalog=None, settings=None) -> dict:
     """Recompute every tag of a stored scene from its files alone: scene.xml at its keyframe (the
     settled state) and the placements, lighting and main camera in scene.json. ``settings``: the
@@ -258,7 +330,7 @@ def measure_stored_scene(scene_dir: Path, catalog=None, settings=None) -> dict:
 
     scene_dir = Path(scene_dir)
     record = SceneRecord.model_validate_json((scene_dir / "scene.json").read_text())
-    model = mujoco.MjModel.from_xml_path(str(scene_dir / "scene.xml"))
+    model = mujoco.MjModel.from_xml_path(str(check_scene_xml(scene_dir, scene_dir.parent)))
     data = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, data, 0)
     mujoco.mj_forward(model, data)

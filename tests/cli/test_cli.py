@@ -113,8 +113,8 @@ BAD_RECIPES: dict[str, tuple[Mutation, Callable[[], list[str]]]] = {
         lambda: ["proposer.n_objects", "[5, 2]"],
     ),
     "unknown_key_of_targeted_proposer": (
-        lambda recipe: recipe["proposer"].update(kind="targeted", reach=2),
-        lambda: ["proposer.reach", "n_objects", "edge_distance", "occluders", "dim_lighting"],
+        lambda recipe: recipe["proposer"].update(kind="targeted", occluder=2),
+        lambda: ["proposer.occluder", "did you mean occluders", "n_objects", "(25 keys)"],
     ),
     "unknown_occluder_asset": (
         lambda recipe: recipe["proposer"].update(kind="targeted", occluders=["wall"]),
@@ -142,9 +142,10 @@ def test_bad_recipe_is_a_one_line_usage_error(case: str, tmp_path: Path, monkeyp
     pipeline.write_text(yaml.safe_dump(recipe))
     monkeypatch.chdir(tmp_path)  # a default runs/<name> would land here
     out = tmp_path / "out"
-    code = main(["generate", str(pipeline), "--max-proposals", "1", "--out", str(out), "--quiet"])
+    # named relative to the working folder, as a user types it (an error line holds 300 characters)
+    code = main(["generate", pipeline.name, "--max-proposals", "1", "--out", str(out), "--quiet"])
     captured = capsys.readouterr()
-    assert_usage_error(code, captured.out, captured.err, out, [str(pipeline), *needles()])
+    assert_usage_error(code, captured.out, captured.err, out, [pipeline.name, *needles()])
     assert sorted(p.name for p in tmp_path.iterdir()) == [pipeline.name]
 
 

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
+from processes import group_members
 from scenes import small_recipe
 
 from scenegen.cli import main
@@ -98,20 +99,6 @@ def assert_same_batch(got: Path, expected: Path) -> None:
     a, b = snapshot(got), snapshot(expected)
     differ = sorted(k for k in a if a[k] != b.get(k))
     assert not differ, f"files differ from the uninterrupted run: {differ}"
-
-
-def group_members(pgid: int) -> list[int]:
-    """Live (not zombie) processes of a process group, from /proc."""
-    alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            text = stat.read_text()
-        except OSError:
-            continue
-        fields = text[text.rfind(")") + 2 :].split()
-        if int(fields[2]) == pgid and fields[0] not in ("Z", "X"):
-            alive.append(int(stat.parent.name))
-    return alive
 
 
 def count_rows(path: Path) -> int:

@@ -1,0 +1,166 @@
+"""Soak: does memory stay flat over a long batch?
+
+    .venv/bin/python benchmarks/soak.py [--plain 3000] [--rendered 500] [--every 100] [--workers 2]
+        [--pipeline pipelines/procedural.yaml]
+
+Runs `scenegen generate` twice as a user would (a subprocess, 2 pool workers): ``--plain`` scenes
+without rendering, then ``--rendered`` scenes with rendering (two 640x480 cameras). Every ``--every``
+accepted scenes (counted from index.jsonl) it samples the resident memory (VmRSS, /proc) of the
+coordinator and of each worker. Reported per run: the table of samples, and the growth of each process
+kind from the sample at 500 scenes (or the first sample, for a run shorter than that) to the last
+(goal: under 5 %). Prints the tables and saves JSON in benchmarks/results/soak.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+WARM = 500  # growth is measured after this many scenes (start-up, caches and first allocations)
+
+
+def _status(pid: int) -> tuple[int, int] | None:
+    """(parent pid, resident kB) of a live process, or None."""
+    try:
+        text = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    if fields.get("State", "").strip().startswith("Z"):
+        return None
+    return int(fields["PPid"]), int(fields.get("VmRSS", "0 kB").split()[0])
+
+
+def resident(root: int) -> dict[str, float]:
+    """MB resident: the coordinator ``root``, its pool workers together (and the largest one), and
+    everything else under it (multiprocessing's resource tracker)."""
+    status = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            found = _status(int(entry.name))
+            if found:
+                status[int(entry.name)] = found
+    tree, frontier = [], {root}
+    while frontier:
+        frontier = {pid for pid, (ppid, _) in status.items() if ppid in frontier and pid not in tree}
+        tree += sorted(frontier)
+    workers, other = [], 0.0
+    for pid in tree:
+        try:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"resource_tracker" in command:
+            other += status[pid][1] / 1024
+        else:
+            workers.append(status[pid][1] / 1024)
+    return {
+        "coordinator": status.get(root, (0, 0))[1] / 1024,
+        "workers": sum(workers),
+        "largest worker": max(workers, default=0.0),
+        "other": other,
+    }
+
+
+def accepted(batch: Path) -> int:
+    try:
+        return (batch / "index.jsonl").read_bytes().count(b"\n")
+    except FileNotFoundError:
+        return 0
+
+
+def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Path) -> dict:
+    """One batch of ``n`` scenes, sampled every ``every`` accepted scenes."""
+    cmd = [sys.executable, "-m", "scenegen.cli", "generate", str(pipeline), "--n", str(n), "--seed", "0"]
+    cmd += ["--out", str(out), "--workers", str(workers), "--quiet", "--max-proposals", str(60 * n)]
+    if not render:
+        cmd.append("--no-render")
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    samples, next_at = [], every
+    while proc.poll() is None:
+        count = accepted(out)
+        if count >= next_at:
+            memory = resident(proc.pid)
+            samples.append({"scenes": count, "wall_s": round(time.perf_counter() - start, 1), **memory})
+            print(f"  {count} scenes: " + ", ".join(f"{k} {v:.0f} MB" for k, v in memory.items()), flush=True)
+            next_at = (count // every + 1) * every
+        time.sleep(0.2)
+    if proc.returncode != 0:
+        raise SystemExit(f"generate exited {proc.returncode}: {proc.stderr.read().decode()[-2000:]}")
+    wall = time.perf_counter() - start
+    return {"n": n, "render": render, "wall_s": round(wall, 1), "samples": samples, "growth": growth(samples)}
+
+
+def growth(samples: list[dict], window: int = 3) -> dict[str, float]:
+    """Per column: the mean of the last ``window`` samples against the mean of the ``window`` samples
+    from WARM scenes on (from the first sample when the run is shorter), in %. Means over a few samples,
+    because a worker's memory moves by ~10 % from one scene to the next (each scene is its own model)."""
+    if len(samples) < 2 * window:
+        return {}
+    first = next((i for i, s in enumerate(samples) if s["scenes"] >= WARM), 0)
+    first = min(first, len(samples) - 2 * window)
+    base, last = samples[first : first + window], samples[-window:]
+    keys = [k for k in last[-1] if k not in ("scenes", "wall_s")]
+
+    def mean(rows, key):
+        return sum(r[key] for r in rows) / len(rows)
+
+    out = {
+        k: round(100 * (mean(last, k) - mean(base, k)) / mean(base, k), 1) for k in keys if mean(base, k) > 0
+    }
+    return out | {"from_scenes": base[0]["scenes"], "to_scenes": last[-1]["scenes"]}
+
+
+def table(run: dict) -> str:
+    keys = [k for k in run["samples"][-1] if k not in ("scenes", "wall_s")] if run["samples"] else []
+    lines = ["| scenes | wall s | " + " | ".join(f"{k} MB" for k in keys) + " |"]
+    lines.append("|---" * (len(keys) + 2) + "|")
+    for s in run["samples"]:
+        cells = " | ".join(f"{s.get(k, 0):.0f}" for k in keys)
+        lines.append(f"| {s['scenes']} | {s['wall_s']} | {cells} |")
+    g = run["growth"]
+    if g:
+        shown = ", ".join(f"{k} {v:+.1f} %" for k, v in g.items() if k not in ("from_scenes", "to_scenes"))
+        lines.append(f"growth, mean of 3 samples from {g['from_scenes']} scenes to the last 3: {shown}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--pipeline", type=Path, default=ROOT / "pipelines" / "procedural.yaml")
+    parser.add_argument("--plain", type=int, default=3000, help="scenes without rendering (default 3000)")
+    parser.add_argument("--rendered", type=int, default=500, help="scenes with rendering (default 500)")
+    parser.add_argument("--every", type=int, default=100, help="sample every this many scenes (default 100)")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "soak.json")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    results = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs", "runs": []}
+    with tempfile.TemporaryDirectory(prefix="soak") as tmp:
+        for n, render in ((args.plain, False), (args.rendered, True)):
+            if n <= 0:
+                continue
+            kind = "rendered" if render else "no rendering"
+            print(f"{n} scenes, {kind}, {args.workers} workers:", flush=True)
+            run = soak(args.pipeline, n, render, args.every, args.workers, Path(tmp) / f"batch_{int(render)}")
+            results["runs"].append(run)
+            print(table(run), flush=True)
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    args.json.write_text(json.dumps(results, indent=1) + "\n")
+    print(f"-> {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
