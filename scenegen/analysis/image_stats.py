@@ -130,15 +130,14 @@ def batch_image_statistics(batch: Path) -> tuple[np.ndarray, list[str], list[str
     camera without an RGB image (a ``--no-render`` batch) or an unreadable PNG raises ValueError
     naming the file.
     """
-    from scenegen.store.batch import INDEX, read_jsonl
+    from scenegen.core.files import confined
+    from scenegen.store.batch import INDEX, scene_dirs
 
     batch = Path(batch)
     index = batch / INDEX
-    if not index.is_file():
-        raise ValueError(f"{index}: no such file; give the directory of a stored batch (scenegen generate)")
     rows, scene_ids, cameras = [], [], []
-    for entry in read_jsonl(index):
-        scene_json = batch / entry["scene_id"] / "scene.json"
+    for entry, scene_dir in scene_dirs(batch):  # StoreError (a ValueError) for a broken index
+        scene_json = scene_dir / "scene.json"
         if not scene_json.is_file():
             raise ValueError(f"{scene_json}: no such file, though {index} lists the scene")
         try:
@@ -152,7 +151,7 @@ def batch_image_statistics(batch: Path) -> tuple[np.ndarray, list[str], list[str
                     f"{scene_json}: camera {camera['name']!r} has no RGB image (was the batch generated "
                     "with --no-render?); image statistics need rendered images"
                 )
-            rows.append(image_statistics(read_rgb(scene_json.parent / name)))
+            rows.append(image_statistics(read_rgb(confined(scene_dir / str(name), batch, "an image"))))
             scene_ids.append(entry["scene_id"])
             cameras.append(camera["name"])
     stats = np.stack(rows) if rows else np.zeros((0, len(IMAGE_STAT_NAMES)))

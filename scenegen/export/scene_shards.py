@@ -62,6 +62,27 @@ def _asset_samples(assets: Path, batch: Path) -> Iterator[dict]:
         yield {"__key__": path.stem, path.suffix[1:]: _read_inside(path, batch)}
 
 
+def _finished(out: Path, batch: Path, scenes_per_shard: int) -> dict | None:
+    """The description of ``out`` when it is a complete export of this batch as it is now (same
+    source, checksum root and shard size; every shard with its recorded digest), else None."""
+    try:
+        description = json.loads((out / EXPORT_FILE).read_text())
+        same = description["source"] == {
+            "batch": str(batch.resolve()),
+            "checksum_root": _checksum_root(batch),
+        }
+        shards = description["shards"]
+        size = description.get("scenes_per_shard", SCENES_PER_SHARD)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    names = {p.name for p in out.iterdir()}
+    if not same or size != scenes_per_shard or names != {EXPORT_FILE, *shards}:
+        return None
+    if any(sha256_file(out / name) != digest for name, digest in shards.items()):
+        return None
+    return description
+
+
 def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER_SHARD) -> dict:
     """Write ``batch``'s accepted scenes as shards into ``out`` (which must not exist or be empty);
     returns the export description (what ``export.json`` holds)."""
@@ -69,7 +90,10 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
 
     batch, out = Path(batch), Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ExportError(f"{out}: exists and is not an empty folder; choose a new --out")
+        done = _finished(out, batch, scenes_per_shard)
+        if done is None:
+            raise ExportError(f"{out}: exists and is not an empty folder; choose a new --out")
+        return done  # the same export, already complete: a rerun is a no-op
     if scenes_per_shard < 1:
         raise ExportError(f"scenes_per_shard {scenes_per_shard}: must be at least 1")
     try:
@@ -80,12 +104,13 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp"))
     try:
-        with wds.ShardWriter(str(tmp / "scenes-%06d.tar"), maxcount=scenes_per_shard, verbose=0) as sink:
+        shards = str(tmp / "scenes-%06d.tar")
+        with wds.ShardWriter(shards, maxcount=scenes_per_shard, verbose=0, mtime=0) as sink:  # no clock time
             for _, scene_dir in scenes:
                 sink.write(_scene_sample(scene_dir, batch))
         assets = 0
         if (batch / ASSETS).is_dir():
-            with wds.TarWriter(str(tmp / "assets-000000.tar")) as sink:
+            with wds.TarWriter(str(tmp / "assets-000000.tar"), mtime=0) as sink:
                 for sample in _asset_samples(batch / ASSETS, batch):
                     sink.write(sample)
                     assets += 1
@@ -95,6 +120,7 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
             "webdataset": importlib.metadata.version("webdataset"),
             "source": {"batch": str(batch.resolve()), "checksum_root": _checksum_root(batch)},
             "counts": {"scenes": len(rows), "assets": assets},
+            "scenes_per_shard": scenes_per_shard,
             "scene_ids": [row["scene_id"] for row in rows],
             "shards": {p.name: sha256_file(p) for p in sorted(tmp.glob("*.tar"))},
         }

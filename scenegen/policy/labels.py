@@ -290,6 +290,8 @@ def label_scenes(
             cache[_key(row)] = row
     rows = [{**cache[job.key], "observation": job.observation} for job in jobs]
     stored = [cache[k] for k in sorted(cache)] if keep else rows
+    # as the log holds them (sorted keys, JSON types): a run resumed from the log writes the same bytes
+    stored = [json.loads(json.dumps(row, sort_keys=True)) for row in stored]
     buffer = pa.BufferOutputStream()
     pq.write_table(pa.Table.from_pylist(stored), buffer)
     atomic_write(out, buffer.getvalue().to_pybytes())

@@ -84,3 +84,34 @@ def test_bad_exports_are_one_line_errors_and_write_nothing(demo_batch: Path, tmp
     with pytest.raises(ExportError, match="no index.jsonl"):
         export_webdataset(tmp_path, tmp_path / "out")
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.tmp*"))
+
+
+def test_a_rerun_onto_the_same_complete_export_is_a_no_op(demo_batch: Path, tmp_path: Path, capsys):
+    out = tmp_path / "wds"
+    assert main(["export", str(demo_batch), "--format", "webdataset", "--out", str(out)]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert main(["export", str(demo_batch), "--format", "webdataset", "--out", str(out)]) == 0
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # and a second export of the same batch has the same bytes (tar headers carry no clock time)
+    assert main(["export", str(demo_batch), "--format", "webdataset", "--out", str(tmp_path / "again")]) == 0
+    assert {p.name: p.read_bytes() for p in (tmp_path / "again").iterdir()} == before
+    # another shard size, or a shard that no longer has its recorded bytes, is not the same export
+    assert (
+        main(
+            [
+                "export",
+                str(demo_batch),
+                "--format",
+                "webdataset",
+                "--out",
+                str(out),
+                "--scenes-per-shard",
+                "2",
+            ]
+        )
+        == 2
+    )
+    (out / "scenes-000000.tar").write_bytes(b"torn")
+    capsys.readouterr()
+    assert main(["export", str(demo_batch), "--format", "webdataset", "--out", str(out)]) == 2
+    assert "exists and is not an empty folder" in capsys.readouterr().err

@@ -48,6 +48,10 @@ def scenegen(*args) -> list[str]:
     return [sys.executable, "-m", "scenegen.cli", *map(str, args)]
 
 
+# the commands render through EGL (an in-process `main` of a GL-free command sets MUJOCO_GL=disable)
+ENV = {**os.environ, "MUJOCO_GL": "egl"}
+
+
 def files_of(root: Path) -> dict[str, str]:
     """sha256 of every file under ``root`` (relative path -> digest); wall-clock files aside."""
     if root.is_file():
@@ -159,9 +163,8 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("kill_inputs")
     recipe = small_recipe(root / "small.yaml", n_objects=[5, 8])
     batch = root / "batch"
-    result = subprocess.run(
-        scenegen("generate", recipe, "--n", 3, "--seed", 1, "--out", batch, "--quiet"), capture_output=True
-    )
+    argv = scenegen("generate", recipe, "--n", 3, "--seed", 1, "--out", batch, "--quiet")
+    result = subprocess.run(argv, capture_output=True, env=ENV)
     assert result.returncode == 0, result.stderr.decode()
     manifest = project_with(batch, root / "project")
     transfer = root / "transfer.yaml"
@@ -232,7 +235,7 @@ def run_case(name: str, case: Case, base: Path, points: int) -> dict:
     start = time.perf_counter()
     first = base / "uninterrupted"
     first.mkdir(parents=True)
-    done = subprocess.run(case.argv(first), capture_output=True, timeout=900)
+    done = subprocess.run(case.argv(first), capture_output=True, timeout=900, env=ENV)
     wall = time.perf_counter() - start
     assert done.returncode in (0, 1), f"{name}: {done.stderr.decode()[-2000:]}"
     expected = done.stdout if case.stdout else case.digest(case.output(first))
@@ -244,7 +247,11 @@ def run_case(name: str, case: Case, base: Path, points: int) -> dict:
         run = base / f"point_{i:02d}"
         run.mkdir()
         proc = subprocess.Popen(
-            case.argv(run), start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            case.argv(run),
+            start_new_session=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=ENV,
         )
         time.sleep(moment)
         if proc.poll() is None:
@@ -261,7 +268,7 @@ def run_case(name: str, case: Case, base: Path, points: int) -> dict:
             problems.append(f"point {i} ({moment:.1f} s): processes left: {left}")
             os.killpg(proc.pid, signal.SIGKILL)
         problems += [f"point {i} ({moment:.1f} s): {p}" for p in case.whole(run)]
-        again = subprocess.run(case.argv(run), capture_output=True, timeout=900)
+        again = subprocess.run(case.argv(run), capture_output=True, timeout=900, env=ENV)
         if again.returncode != done.returncode:
             problems.append(f"point {i}: rerun exited {again.returncode}: {again.stderr.decode()[-300:]}")
             continue
@@ -273,7 +280,8 @@ def run_case(name: str, case: Case, base: Path, points: int) -> dict:
             )
         if temporary(run):
             problems.append(f"point {i}: temporary files left after the rerun: {temporary(run)[:3]}")
-        shutil.rmtree(run, ignore_errors=True)
+        if not problems:
+            shutil.rmtree(run, ignore_errors=True)  # kept for a look when something is wrong
     row["problems"] = len(problems)
     row["seconds"] = round(time.perf_counter() - start, 1)
     REPORT[name] = row
