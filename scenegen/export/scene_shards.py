@@ -102,6 +102,8 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
         raise ExportError(str(exc)) from None
     rows = [row for row, _ in scenes]
     out.parent.mkdir(parents=True, exist_ok=True)
+    for stale in out.parent.glob(f".{out.name}.tmp*"):  # left by an export that was killed
+        shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp"))
     try:
         shards = str(tmp / "scenes-%06d.tar")
