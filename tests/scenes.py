@@ -138,16 +138,22 @@ def project_with(batch: Path, root: Path) -> Path:
     """A project folder ``root`` holding a copy of ``batch`` (its shared meshes hard-linked, never
     written) added to the folder's own data_manifest.yaml (the project's datasheet and transfer
     section, no other sources); returns the manifest's path. The copy is ``root``/batch."""
-    import os
-    import shutil
-
     from scenegen.cli import main
 
-    shutil.copytree(batch, root / "batch", ignore=shutil.ignore_patterns("_assets"))
-    shutil.copytree(batch / "_assets", root / "batch" / "_assets", copy_function=os.link)
+    copy_batch(batch, root / "batch")
     manifest = yaml.safe_load((PROJECT_ROOT / "data_manifest.yaml").read_text())
     manifest = {k: v for k, v in manifest.items() if k not in ("models", "recipes")} | {"sources": []}
     (root / "data_manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     code = main(["manifest", "add", str(root / "batch"), "--to", str(root / "data_manifest.yaml")])
     assert code == 0, f"scenegen manifest add exited {code}"
     return root / "data_manifest.yaml"
+
+
+def copy_batch(batch: Path, to: Path) -> Path:
+    """A copy of ``batch`` at ``to`` whose shared meshes are hard links (never to be written)."""
+    import os
+    import shutil
+
+    shutil.copytree(batch, to, ignore=shutil.ignore_patterns("_assets"))
+    shutil.copytree(batch / "_assets", to / "_assets", copy_function=os.link)
+    return to

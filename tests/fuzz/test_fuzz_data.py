@@ -14,7 +14,7 @@ import yaml
 from fuzzing import ODD_VALUES, dump_yaml, example_dir, mutated_mapping, run_cli
 from hypothesis import given
 from hypothesis import strategies as st
-from scenes import project_with
+from scenes import copy_batch, project_with
 
 OUTSIDE = ["/etc/hostname", "/etc", "../outside.txt", "../../etc/passwd"]
 
@@ -120,13 +120,6 @@ def _apply(data, edits: list[tuple[int, object]]):
     return data
 
 
-def _copy_batch(batch: Path, to: Path) -> Path:
-    """A copy of ``batch`` whose shared meshes are hard links (never written by the mutations)."""
-    shutil.copytree(batch, to, ignore=shutil.ignore_patterns("_assets"))
-    shutil.copytree(batch / "_assets", to / "_assets", copy_function=os.link)
-    return to
-
-
 def _commands(batch: Path, root: Path) -> dict[str, list]:
     return {
         "audit": ["audit", batch / "manifest.yaml"],
@@ -162,7 +155,7 @@ def test_scene_folders(demo_batch, batch_files, data):
     what, breaks = data.draw(broken_batch(batch_files), label="broken")
     command = data.draw(st.sampled_from(COMMANDS), label="command")
     with example_dir() as root:
-        batch = _copy_batch(demo_batch, root / "batch")
+        batch = copy_batch(demo_batch, root / "batch")
         breaks(batch)
         run_cli(
             f"scene folder: {command}",
@@ -193,7 +186,7 @@ def test_manifests(project, data):
     )
     command = data.draw(st.sampled_from(["audit", "coverage", "manifest add"]), label="command")
     with example_dir() as root:
-        _copy_batch(project / "batch", root / "batch")
+        copy_batch(project / "batch", root / "batch")
         path = root / "data_manifest.yaml"
         path.write_bytes(dump_yaml(edited))
         argv = {
