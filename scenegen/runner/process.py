@@ -285,4 +285,4 @@ def work(proposal: SceneProposal) -> Outcome:
     try:
         return process_proposal(proposal, config, catalog, export)
     except StopIteration as exc:  # inside map() it would end the batch silently, as if out of proposals
-        raise RuntimeError(f"proposal {proposal.proposal_index}: StopIteration in a stage") from exc
+        raise RuntimeError(f"proposal {proposal.index}: StopIteration in a stage") from exc
