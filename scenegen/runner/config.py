@@ -218,6 +218,14 @@ def load_pipeline(
     try:
         return PipelineConfig(**raw)
     except ValidationError as exc:
-        raise ConfigError(_format_error(path, exc)) from None
+        raise ConfigError(_blame_request(_format_error(path, exc), path, request)) from None
     except ValueError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+        raise ConfigError(_blame_request(f"{path}: {exc}", path, request)) from None
+
+
+def _blame_request(message: str, path: Path, request: str | None) -> str:
+    """A condition error after ``--request`` was laid over the recipe names the option too: the
+    request may be what made the condition impossible."""
+    if request is not None and message.startswith(f"{path}: condition"):
+        return f"--request over {path}: " + message.removeprefix(f"{path}: ")
+    return message

@@ -33,6 +33,7 @@ def test_unreachable_request_is_refused_before_any_work(tmp_path: Path, capsys: 
     assert generate(out, "retrieve the spoon toppled", "procedural") == USAGE_ERROR
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "toppled" in err[0] and "request another target" in err[0]
+    assert err[0].startswith("scenegen: error: --request over ")  # the request made it impossible
     assert not out.exists()
 
 
