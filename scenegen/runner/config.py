@@ -216,7 +216,7 @@ def load_pipeline(
         shared = {k: v for k, v in (raw.get("proposer") or {}).items() if k in settings.model_fields}
         raw["proposer"] = {**shared, "kind": proposer}
     try:
-        return PipelineConfig(**raw)
+        return PipelineConfig.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(_blame_request(_format_error(path, exc), path, request)) from None
     except ValueError as exc:
