@@ -136,13 +136,16 @@ def small_recipe(
 
 def project_with(batch: Path, root: Path) -> Path:
     """A project folder ``root`` holding a copy of ``batch`` (its shared meshes hard-linked, never
-    written) added to the folder's own data_manifest.yaml (the project's datasheet and transfer
-    section, no other sources); returns the manifest's path. The copy is ``root``/batch."""
+    written) added to the folder's own data_manifest.yaml (the project's datasheet, a pending
+    transfer section: the folder holds no transfer artifact; no other sources); returns the manifest's
+    path. The copy is ``root``/batch."""
     from scenegen.cli import main
+    from scenegen.data.project_manifest import TRANSFER
 
     copy_batch(batch, root / "batch")
     manifest = yaml.safe_load((PROJECT_ROOT / "data_manifest.yaml").read_text())
     manifest = {k: v for k, v in manifest.items() if k not in ("models", "recipes")} | {"sources": []}
+    manifest["transfer"] = TRANSFER.model_dump(mode="json", exclude_none=True)
     (root / "data_manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
     code = main(["manifest", "add", str(root / "batch"), "--to", str(root / "data_manifest.yaml")])
     assert code == 0, f"scenegen manifest add exited {code}"

@@ -43,7 +43,8 @@ DATASHEET = Datasheet(
         "C2ST 0.647 on 2,000 scenes; toppled and clutter rates outside tolerance).",
     ],
     out_of_scope=[
-        "Claims about real-world transfer: the transfer outcome is pending, and its panel will be simulated.",
+        "Claims about real-world transfer: the transfer outcome is measured on a simulated panel (held-out "
+        "reference layouts), never on a real robot or real rare cases.",
     ],
 )
 TRANSFER = TransferOutcome(

@@ -59,6 +59,8 @@ def project(tmp_path: Path) -> Path:
     (root / "pipelines").mkdir()
     shutil.copy(PROJECT_ROOT / "assets/reference/reference.parquet", root / "assets/reference")
     shutil.copy(PROJECT_ROOT / "pipelines/reference.yaml", root / "pipelines")
+    # the transfer outcome's artifact, which the audit rehashes (its location is relative)
+    shutil.copytree(PROJECT_ROOT / "assets/transfer/result", root / "assets/transfer/result")
     checkpoint = Path(shutil.copytree(PROJECT_ROOT / "assets/generator", tmp_path / "generator"))
     manifest = project_manifest(read_manifest(PROJECT_ROOT / "data_manifest.yaml"))
     data = manifest.model_dump(mode="json", exclude_none=True)
@@ -77,6 +79,15 @@ def test_the_clean_batch_and_project_pass(batch: Path, project: Path, capsys):
     }
     code, report = run_audit(project, capsys)
     assert code == 0 and report["ok"], report["violations"]
+
+
+def test_an_edited_transfer_artifact_fails_its_checksum(project: Path, capsys):
+    """The committed transfer outcome names its artifact's sha256: one changed episode record fails."""
+    episodes = project.parent / "assets/transfer/result/episodes/rare_nominal.jsonl"
+    episodes.write_text(episodes.read_text().replace('"success": true', '"success": false', 1))
+    code, report = run_audit(project, capsys)
+    assert code == TAMPERED
+    assert [v["where"] for v in report["violations"]] == ["transfer"], report["violations"]
 
 
 def test_the_committed_project_manifest_passes_and_is_derived_from_the_files(capsys):
