@@ -112,14 +112,15 @@ REQUESTS = st.one_of(
 
 
 @given(REQUESTS)
+@example(request="--steps")  # as one argument (a separate "--steps" is argparse's usage error)
 def test_requests(request: str):
     with example_dir() as root:
+        # `--request=TEXT`: how a shell user passes a request that starts with a dash
         argv = [
             "generate",
             PIPELINES / "procedural.yaml",
             "--check",
-            "--request",
-            request,
+            f"--request={request}",
             "--out",
             root / "out",
         ]
