@@ -2,7 +2,7 @@
 code at a baseline commit and the code here, with the local pool and with Ray.
 
     .venv/bin/python benchmarks/pipeline_throughput.py [--pipelines P ...] [--n 48] [--workers 1 2]
-        [--ray-cpus 2] [--baseline 83efef1 | --no-baseline] [--no-ray]
+        [--ray-cpus 2] [--baseline 83efef1 | --no-baseline] [--no-ray] [--steady 144]
 
 Every configuration runs the same recipe, seed and n in the same invocation, each in a fresh
 process (`run_batch` into a temporary directory, start-up of the worker processes included):
@@ -16,7 +16,10 @@ CPU seconds "all processes" are those of the coordinator and every process under
 Ray's raylet, GCS and actors), sampled from /proc every 0.2 s, over the batch only. "own s+r" is the
 accepted scenes' settle + render CPU seconds measured inside the workers (time.process_time; the
 baseline has only its in-stage wall times, a slight over-estimate of its own CPU, which flatters its
-ratio). Prints tables and saves JSON.
+ratio). ``--steady N2`` runs every configuration again at N2 accepted scenes and reports the cost
+of the scenes beyond the first n (scenes/s and CPU per scene from the difference of the two runs):
+what a long batch pays per scene once start-up (imports, worker start, first compiles) and the batch
+manifest's realism checks are paid. Prints tables and saves JSON.
 """
 
 from __future__ import annotations
@@ -162,21 +165,82 @@ def run_child(spec: dict, code: Path) -> dict:
 def configurations(args) -> list[dict]:
     runs = []
     for pipeline in args.pipelines:
-        base = {"pipeline": str(pipeline), "n": args.n, "seed": args.seed, "render": not args.no_render}
-        if args.baseline:
-            runs += [{**base, "code": "baseline", "backend": "local", "workers": w} for w in args.workers]
-        runs += [{**base, "code": "current", "backend": "local", "workers": w} for w in args.workers]
-        if not args.no_ray:
-            runs.append({**base, "code": "current", "backend": "ray", "workers": args.ray_cpus})
+        for n in (args.n, args.steady) if args.steady else (args.n,):
+            base = {"pipeline": str(pipeline), "n": n, "seed": args.seed, "render": not args.no_render}
+            if args.baseline:
+                runs += [{**base, "code": "baseline", "backend": "local", "workers": w} for w in args.workers]
+            runs += [{**base, "code": "current", "backend": "local", "workers": w} for w in args.workers]
+            if not args.no_ray:
+                runs.append({**base, "code": "current", "backend": "ray", "workers": args.ray_cpus})
     return runs
+
+
+def _key(r: dict) -> tuple:
+    return r["pipeline"], r["code"], r["backend"], r["workers"]
+
+
+def steady(results: list[dict]) -> list[dict]:
+    """Per configuration run at two sizes: the scenes beyond the smaller run, from the difference."""
+    out = []
+    for long in results:
+        short = [r for r in results if _key(r) == _key(long) and r["n"] < long["n"]]
+        if not short:
+            continue
+        short = short[0]
+        scenes = long["accepted"] - short["accepted"]
+        cpu = (
+            long["cpu_all_per_accepted_s"] * long["accepted"]
+            - short["cpu_all_per_accepted_s"] * short["accepted"]
+        )
+        wall = long["wall_s"] - short["wall_s"]
+        out.append(
+            {
+                **{k: long[k] for k in ("pipeline", "code", "backend", "workers")},
+                "scenes": scenes,
+                "accepted_per_s": round(scenes / wall, 3),
+                "cpu_all_per_accepted_s": round(cpu / scenes, 4),
+                "own_settle_render_cpu_s": long["own_settle_render_cpu_s"],
+                "cpu_over_own": round(cpu / scenes / long["own_settle_render_cpu_s"], 3),
+            }
+        )
+    return out
+
+
+def report_steady(rows: list[dict]) -> None:
+    for pipeline in dict.fromkeys(r["pipeline"] for r in rows):
+        mine = [r for r in rows if r["pipeline"] == pipeline]
+        print(f"\n{pipeline}: the {mine[0]['scenes']} scenes beyond the first run's (steady state)")
+        print(
+            "".join(
+                f"{h:>{w}}"
+                for h, w in (
+                    ("code", 9),
+                    ("backend", 8),
+                    ("workers", 8),
+                    ("scenes/s", 9),
+                    ("vs base", 8),
+                    ("cpu/scene", 10),
+                    ("own s+r", 8),
+                    ("ratio", 6),
+                )
+            )
+        )
+        base = {r["workers"]: r for r in mine if r["code"] == mine[0]["code"] and r["backend"] == "local"}
+        for r in mine:
+            ref = base.get(r["workers"])
+            vs = r["accepted_per_s"] / ref["accepted_per_s"] if ref else float("nan")
+            print(
+                f"{r['code']:>9}{r['backend']:>8}{r['workers']:>8}{r['accepted_per_s']:>9.2f}{vs:>8.2f}"
+                f"{r['cpu_all_per_accepted_s']:>10.3f}{r['own_settle_render_cpu_s']:>8.3f}{r['cpu_over_own']:>6.2f}"
+            )
 
 
 def report(results: list[dict]) -> None:
     head = ("code", 9), ("backend", 8), ("workers", 8), ("scenes/s", 9), ("vs base", 8), ("wall s", 8)
     tail = ("cpu/scene", 10), ("own s+r", 8), ("ratio", 6), ("start s", 8)
-    for pipeline in dict.fromkeys(r["pipeline"] for r in results):
-        rows = [r for r in results if r["pipeline"] == pipeline]
-        print(f"\n{pipeline}: n={rows[0]['n']} cameras: {rows[0]['cameras']}")
+    for pipeline, n in dict.fromkeys((r["pipeline"], r["n"]) for r in results):
+        rows = [r for r in results if r["pipeline"] == pipeline and r["n"] == n]
+        print(f"\n{pipeline}: n={n} cameras: {rows[0]['cameras']}")
         print("".join(f"{h:>{w}}" for h, w in (*head, *tail)))
         base = {r["workers"]: r for r in rows if r["code"] == rows[0]["code"] and r["backend"] == "local"}
         for r in rows:
@@ -213,9 +277,17 @@ def main() -> None:
     parser.add_argument("--no-baseline", dest="baseline", action="store_const", const=None)
     parser.add_argument("--no-ray", action="store_true")
     parser.add_argument("--no-render", action="store_true")
+    parser.add_argument(
+        "--steady",
+        type=int,
+        metavar="N2",
+        help="also run every configuration at N2 > n accepted scenes: the cost per scene beyond n",
+    )
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/pipeline_throughput.json"))
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.steady is not None and args.steady <= args.n:
+        parser.error(f"--steady {args.steady}: give more accepted scenes than --n ({args.n})")
     if args.child:
         print(json.dumps(measure(json.loads(args.child))))
         return
@@ -232,6 +304,9 @@ def main() -> None:
             )
             results.append({**spec, **run_child(spec, code[spec["code"]])})
     report(results)
+    beyond = steady(results)
+    if beyond:
+        report_steady(beyond)
     args.json.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "machine": {
@@ -241,6 +316,7 @@ def main() -> None:
         },
         "baseline": args.baseline,
         "results": results,
+        "steady": beyond,
     }
     args.json.write_text(json.dumps(payload, indent=1) + "\n")
     print(f"\nsaved {args.json}")

@@ -140,16 +140,24 @@ def project_with(batch: Path, root: Path) -> Path:
     transfer section: the folder holds no transfer artifact; no other sources); returns the manifest's
     path. The copy is ``root``/batch."""
     from scenegen.cli import main
-    from scenegen.data.project_manifest import TRANSFER
 
     copy_batch(batch, root / "batch")
+    path = empty_project_manifest(root / "data_manifest.yaml")
+    code = main(["manifest", "add", str(root / "batch"), "--to", str(path)])
+    assert code == 0, f"scenegen manifest add exited {code}"
+    return path
+
+
+def empty_project_manifest(path: Path) -> Path:
+    """The project's data_manifest.yaml without sources, models and recipes, its transfer section
+    pending, written at ``path``: a project that batches can be added to."""
+    from scenegen.data.project_manifest import TRANSFER
+
     manifest = yaml.safe_load((PROJECT_ROOT / "data_manifest.yaml").read_text())
     manifest = {k: v for k, v in manifest.items() if k not in ("models", "recipes")} | {"sources": []}
     manifest["transfer"] = TRANSFER.model_dump(mode="json", exclude_none=True)
-    (root / "data_manifest.yaml").write_text(yaml.safe_dump(manifest, sort_keys=False))
-    code = main(["manifest", "add", str(root / "batch"), "--to", str(root / "data_manifest.yaml")])
-    assert code == 0, f"scenegen manifest add exited {code}"
-    return root / "data_manifest.yaml"
+    path.write_text(yaml.safe_dump(manifest, sort_keys=False))
+    return path
 
 
 def copy_batch(batch: Path, to: Path) -> Path:

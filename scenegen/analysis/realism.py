@@ -19,12 +19,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from scenegen.core.files import SPLITS, load_rows  # noqa: F401 - both are part of this module's face
 from scenegen.core.layout import FURNITURE, TABLE_TOP_Z
+
+if TYPE_CHECKING:
+    import torch  # imported where the classifier is trained: the realism scorer of every worker is numpy
 
 HELDOUT_EVERY = 5  # a layout whose proposal index % 5 == 0 is held out
 SUPPORT_KINDS = ("table", "shelf", "bin", "floor", "stacked")
@@ -327,6 +330,8 @@ def _torch_seed(seed: int, *key: int) -> int:
 def _train_classifier(x: torch.Tensor, y: torch.Tensor, generator: torch.Generator) -> torch.nn.Module:
     """A 1-hidden-layer MLP (D -> C2ST_HIDDEN -> 1 logit) fitted full-batch; init drawn from
     ``generator`` (PyTorch's default Linear init, uniform +-1/sqrt(fan_in))."""
+    import torch
+
     model = torch.nn.Sequential(
         torch.nn.Linear(x.shape[1], C2ST_HIDDEN), torch.nn.Tanh(), torch.nn.Linear(C2ST_HIDDEN, 1)
     )
@@ -365,6 +370,8 @@ def c2st(a: np.ndarray, b: np.ndarray, seed: int, folds: int = 5) -> C2STResult:
     x = np.concatenate([a, b])
     y = np.concatenate([np.zeros(n), np.ones(n)])
     fold_of = np.concatenate([np.arange(n) % folds, np.arange(n) % folds])
+
+    import torch
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # one thread: reductions in a fixed order, the same numbers every run

@@ -100,6 +100,7 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
         scenes = scene_dirs(batch)
     except StoreError as exc:
         raise ExportError(str(exc)) from None
+    checksum_root = _checksum_root(batch)  # before anything is written: a broken manifest is an error
     rows = [row for row, _ in scenes]
     out.parent.mkdir(parents=True, exist_ok=True)
     for stale in out.parent.glob(f".{out.name}.tmp*"):  # left by an export that was killed
@@ -120,7 +121,7 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
             "format": "webdataset",
             "scenegen": __version__,
             "webdataset": importlib.metadata.version("webdataset"),
-            "source": {"batch": str(batch.resolve()), "checksum_root": _checksum_root(batch)},
+            "source": {"batch": str(batch.resolve()), "checksum_root": checksum_root},
             "counts": {"scenes": len(rows), "assets": assets},
             "scenes_per_shard": scenes_per_shard,
             "scene_ids": [row["scene_id"] for row in rows],
@@ -137,13 +138,19 @@ def export_webdataset(batch: Path, out: Path, scenes_per_shard: int = SCENES_PER
 
 
 def _checksum_root(batch: Path) -> str | None:
-    """The batch manifest's checksum root (None for a batch without a manifest)."""
-    from scenegen.manifest import read_manifest
+    """The batch manifest's checksum root (None for a batch without a manifest); ExportError when
+    the manifest cannot be read."""
+    from scenegen.manifest import ManifestError, read_manifest
 
     if not (batch / "manifest.yaml").is_file():
         return None
-    source = read_manifest(batch / "manifest.yaml").sources[0]
-    return getattr(source.checksums, "root", None)
+    try:
+        sources = read_manifest(batch / "manifest.yaml").sources
+    except ManifestError as exc:
+        raise ExportError(str(exc)) from None
+    if not sources:
+        raise ExportError(f"{batch / 'manifest.yaml'}: sources: empty (a batch manifest has one)")
+    return getattr(sources[0].checksums, "root", None)
 
 
 def _member_file(shard: Path, member: tarfile.TarInfo, name: str) -> str:

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import importlib.metadata
 import json
@@ -46,7 +47,13 @@ PACKAGES = ("torch", *SCENE_PACKAGES)
 
 def package_versions(names: tuple[str, ...] = PACKAGES) -> dict[str, str]:
     """Installed versions of ``names`` (default: every package that shapes a batch), in that order."""
-    return {name: importlib.metadata.version(name) for name in names}
+    return dict(_versions(names))
+
+
+@functools.lru_cache(maxsize=8)
+def _versions(names: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    # read once per process: each lookup parses the package's METADATA (~5 ms per scene record)
+    return tuple((name, importlib.metadata.version(name)) for name in names)
 
 
 def checksum_root(files: dict[str, str]) -> str:

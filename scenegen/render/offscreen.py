@@ -145,10 +145,7 @@ class SceneRenderer:
         ``robot_detail`` < 1 draws the robot's visual meshes decimated to that share of their
         triangles (render/robot_mesh.py; the model itself is not changed)."""
         mj = self._mujoco
-        self._context.make_current()
-        model.vis.quality.shadowsize = RENDER_SETTINGS["shadowsize"]
-        model.vis.global_.offwidth, model.vis.global_.offheight = MAX_SIZE
-        con, seg_con = self._context_for(model, robot_detail)
+        con, seg_con = self.prepare(model, robot_detail)
         scene = mj.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
         scene.flags[mj.mjtRndFlag.mjRND_REFLECTION] = RENDER_SETTINGS["reflections"]
         option = mj.MjvOption()
@@ -161,6 +158,14 @@ class SceneRenderer:
             self._camera(model, data, (con, seg_con), scene, option, name, wh, instance)
             for name, wh in zip(cameras, size, strict=True)
         ]
+
+    def prepare(self, model, robot_detail: float = 1.0):
+        """Make this renderer ready for ``model``'s meshes and textures (upload them, decimate the
+        robot's at ``robot_detail``), as :meth:`render` does first; a worker calls it at its start."""
+        self._context.make_current()
+        model.vis.quality.shadowsize = RENDER_SETTINGS["shadowsize"]
+        model.vis.global_.offwidth, model.vis.global_.offheight = MAX_SIZE
+        return self._context_for(model, robot_detail)
 
     def _context_for(self, model, robot_detail: float = 1.0):
         """An MjrContext holding the model's meshes and textures, reused while they stay the same.

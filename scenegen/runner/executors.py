@@ -108,6 +108,8 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
         initargs=(os.getpid(), initializer, initargs),
     )
     try:
+        for _ in range(workers):  # start every worker now: their start-up overlaps the first items' making
+            pool.submit(int)
         pending: deque = deque()
         for item in items:
             pending.append(pool.submit(fn, item))
@@ -116,7 +118,13 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
         while pending:
             yield pending.popleft().result()
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        # Items still running when the caller stops early (a batch that has its n scenes) are not
+        # wanted: end their workers now rather than wait up to a proposal's time for them.
+        workers_now = list((getattr(pool, "_processes", None) or {}).values())
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in workers_now:
+            process.terminate()
+        pool.shutdown(wait=True)
 
 
 def _pool_worker_start(coordinator: int, initializer, initargs: tuple) -> None:

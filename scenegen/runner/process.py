@@ -263,10 +263,20 @@ def init_worker(config_json: str, pooled: bool = False, export: bool = True, sco
 
         install_scorer(config.realism.reference, config.realism.k, scorer)
     _WORKER = (config, load_catalog(), export)
+    _warm_up(config, _WORKER[1])
+
+
+def _warm_up(config: PipelineConfig, catalog: Catalog) -> None:
+    """Pay a worker's first-scene costs at its start, while the coordinator draws the first proposals:
+    MuJoCo's mesh cache (the robot's meshes decoded, ~0.7 s) and, with rendering, the GL context with
+    every catalog mesh and texture uploaded and the robot's meshes decimated (~0.8 s). Scenes share
+    that mesh table (sim/world.py: build_world), so the first scene finds them ready; nothing of a
+    scene's output depends on this (its own model sets what it draws)."""
+    model = world.build_world(catalog, []).compile()
     if config.render:
         from scenegen.render.offscreen import process_renderer
 
-        process_renderer()
+        process_renderer().prepare(model, config.robot_mesh_detail or 1.0)
 
 
 def shared_state(config: PipelineConfig):

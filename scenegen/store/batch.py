@@ -16,6 +16,7 @@ complete or absent.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -49,12 +50,16 @@ def asset_name(path: str) -> str:
 
 
 def scene_xml(
-    spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: dict
+    spec: mujoco.MjSpec, qpos: np.ndarray, ctrl: np.ndarray, objects: dict, stand_ins: bool = True
 ) -> tuple[str, dict[str, str]]:
     """MJCF of a settled scene, with mesh and texture files referenced inside ``../_assets/``.
 
     Free bodies are moved to their settled poses and keyframe 0 ``settled`` holds the full qpos and
     ctrl. ``objects`` maps body name -> qpos address. Returns (xml text, {asset file name: source path}).
+    ``stand_ins``: MuJoCo compiles the whole spec again to write it, and most of that compile is the
+    robot's visual meshes (~45 of ~60 ms); the text names a mesh's file but holds nothing read from it,
+    so the spec is written with a four-vertex stand-in for every mesh file and the real file names put
+    back (the same bytes: tests/store/test_scene_xml.py).
     """
     for name, adr in objects.items():
         body = spec.body(name)
@@ -63,11 +68,14 @@ def scene_xml(
     for key in list(spec.keys):
         spec.delete(key)
     spec.add_key(name="settled", qpos=qpos, ctrl=ctrl)
-    root = ET.fromstring(spec.to_xml())
+    with _stand_in_meshes(spec) if stand_ins else contextlib.nullcontext({}) as mesh_files:
+        root = ET.fromstring(spec.to_xml())
     needed: dict[str, str] = {}
     for element in root.iter():
         if element.tag in ("mesh", "texture", "hfield", "skin") and element.get("file"):
             source = element.get("file")
+            if element.tag == "mesh":
+                source = mesh_files.get(element.get("name"), source)
             name = asset_name(source)
             needed[name] = source
             element.set("file", name)
@@ -104,6 +112,47 @@ def scene_xml(
     compiler.set("texturedir", f"../{ASSETS}/")
     ET.indent(root)
     return ET.tostring(root, encoding="unicode") + "\n", needed
+
+
+_TETRAHEDRON = ((0.0, 0.0, 0.0), (0.01, 0.0, 0.0), (0.0, 0.01, 0.0), (0.0, 0.0, 0.01))
+_TETRAHEDRON_FACES = ((0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3))
+
+
+@functools.cache
+def _stand_in_files() -> dict[str, str]:
+    """A four-vertex mesh as .obj and .stl, written once per process to a folder removed at exit."""
+    import atexit
+    import struct
+    import tempfile
+
+    folder = Path(tempfile.mkdtemp(prefix="scenegen_stand_in_"))
+    atexit.register(shutil.rmtree, folder, True)
+    obj = "".join("v {} {} {}\n".format(*v) for v in _TETRAHEDRON)
+    obj += "".join("f {} {} {}\n".format(*(i + 1 for i in f)) for f in _TETRAHEDRON_FACES)
+    (folder / "stand_in.obj").write_text(obj)
+    triangles = b"".join(
+        struct.pack("<12fH", 0, 0, 0, *(c for i in f for c in _TETRAHEDRON[i]), 0) for f in _TETRAHEDRON_FACES
+    )
+    (folder / "stand_in.stl").write_bytes(bytes(80) + struct.pack("<I", len(_TETRAHEDRON_FACES)) + triangles)
+    return {".obj": str(folder / "stand_in.obj"), ".stl": str(folder / "stand_in.stl")}
+
+
+@contextlib.contextmanager
+def _stand_in_meshes(spec: mujoco.MjSpec):
+    """Within the block, every named .obj / .stl mesh of ``spec`` reads a stand-in file; yields {mesh
+    name: its real file}, restored on exit."""
+    stand_ins, real = _stand_in_files(), {}
+    try:
+        for mesh in spec.meshes:
+            stand_in = stand_ins.get(Path(mesh.file).suffix.lower())
+            if mesh.name and mesh.file and stand_in:
+                real[mesh.name] = mesh.file
+                mesh.file = stand_in
+        yield real
+    finally:
+        for mesh in spec.meshes:
+            if mesh.name in real:
+                mesh.file = real[mesh.name]
 
 
 def _floats(values) -> str:

@@ -86,6 +86,20 @@ def test_bad_exports_are_one_line_errors_and_write_nothing(demo_batch: Path, tmp
     assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.tmp*"))
 
 
+def test_a_batch_manifest_that_does_not_read_is_a_one_line_error(demo_batch: Path, tmp_path: Path, capsys):
+    # found by the long fuzz profile: a ManifestError escaped as a traceback, after the shards were written
+    from scenes import copy_batch
+
+    batch = copy_batch(demo_batch, tmp_path / "batch")
+    manifest = batch / "manifest.yaml"
+    manifest.write_text(manifest.read_text().replace("schema_version: 2", "schema_version: -108833"))
+    assert main(["export", str(batch), "--format", "webdataset", "--out", str(tmp_path / "wds")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("scenegen: error: ") and "manifest.yaml: schema_version -108833" in err, err
+    assert len(err.splitlines()) == 1
+    assert not (tmp_path / "wds").exists() and not list(tmp_path.glob(".wds.tmp*"))
+
+
 def test_a_rerun_onto_the_same_complete_export_is_a_no_op(demo_batch: Path, tmp_path: Path, capsys):
     out = tmp_path / "wds"
     assert main(["export", str(demo_batch), "--format", "webdataset", "--out", str(out)]) == 0

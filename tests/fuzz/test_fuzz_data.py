@@ -14,7 +14,7 @@ import yaml
 from fuzzing import ODD_VALUES, dump_yaml, example_dir, mutated_mapping, run_cli
 from hypothesis import given
 from hypothesis import strategies as st
-from scenes import copy_batch, project_with
+from scenes import copy_batch, empty_project_manifest, project_with
 
 OUTSIDE = ["/etc/hostname", "/etc", "../outside.txt", "../../etc/passwd"]
 
@@ -157,6 +157,8 @@ def test_scene_folders(demo_batch, batch_files, data):
     with example_dir() as root:
         batch = copy_batch(demo_batch, root / "batch")
         breaks(batch)
+        if command == "manifest add":  # a project the batch can join: the answer is about the batch
+            empty_project_manifest(root / "data_manifest.yaml")
         run_cli(
             f"scene folder: {command}",
             _commands(batch, root)[command],
