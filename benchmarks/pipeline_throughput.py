@@ -210,48 +210,14 @@ def report_steady(rows: list[dict]) -> None:
     for pipeline in dict.fromkeys(r["pipeline"] for r in rows):
         mine = [r for r in rows if r["pipeline"] == pipeline]
         print(f"\n{pipeline}: the {mine[0]['scenes']} scenes beyond the first run's (steady state)")
-        print(
-            "".join(
-                f"{h:>{w}}"
-                for h, w in (
-                    ("code", 9),
-                    ("backend", 8),
-                    ("workers", 8),
-                    ("scenes/s", 9),
-                    ("vs base", 8),
-                    ("cpu/scene", 10),
-                    ("own s+r", 8),
-                    ("ratio", 6),
-                )
-            )
-        )
-        base = {r["workers"]: r for r in mine if r["code"] == mine[0]["code"] and r["backend"] == "local"}
-        for r in mine:
-            ref = base.get(r["workers"])
-            vs = r["accepted_per_s"] / ref["accepted_per_s"] if ref else float("nan")
-            print(
-                f"{r['code']:>9}{r['backend']:>8}{r['workers']:>8}{r['accepted_per_s']:>9.2f}{vs:>8.2f}"
-                f"{r['cpu_all_per_accepted_s']:>10.3f}{r['own_settle_render_cpu_s']:>8.3f}{r['cpu_over_own']:>6.2f}"
-            )
+        _print_rows(mine, whole=False)
 
 
 def report(results: list[dict]) -> None:
-    head = ("code", 9), ("backend", 8), ("workers", 8), ("scenes/s", 9), ("vs base", 8), ("wall s", 8)
-    tail = ("cpu/scene", 10), ("own s+r", 8), ("ratio", 6), ("start s", 8)
     for pipeline, n in dict.fromkeys((r["pipeline"], r["n"]) for r in results):
         rows = [r for r in results if r["pipeline"] == pipeline and r["n"] == n]
         print(f"\n{pipeline}: n={n} cameras: {rows[0]['cameras']}")
-        print("".join(f"{h:>{w}}" for h, w in (*head, *tail)))
-        base = {r["workers"]: r for r in rows if r["code"] == rows[0]["code"] and r["backend"] == "local"}
-        for r in rows:
-            ref = base.get(r["workers"])
-            vs = r["accepted_per_s"] / ref["accepted_per_s"] if ref else float("nan")
-            start = f"{r['cluster_start_s']:.1f}" if r["cluster_start_s"] is not None else "-"
-            print(
-                f"{r['code']:>9}{r['backend']:>8}{r['workers']:>8}{r['accepted_per_s']:>9.2f}{vs:>8.2f}"
-                f"{r['wall_s']:>8.1f}{r['cpu_all_per_accepted_s']:>10.3f}{r['own_settle_render_cpu_s']:>8.3f}"
-                f"{r['cpu_over_own']:>6.2f}{start:>8}"
-            )
+        _print_rows(rows, whole=True)
         print("stage wall seconds per accepted scene (all proposals, summed over workers):")
         print(
             f"{'stage':<10}"
@@ -259,6 +225,27 @@ def report(results: list[dict]) -> None:
         )
         for stage in STAGES:
             print(f"{stage:<10}" + "".join(f"{r['stage_s_per_accepted'].get(stage, 0):>10.3f}" for r in rows))
+
+
+def _print_rows(rows: list[dict], whole: bool) -> None:
+    """One line per configuration, "vs base" against the first code's local run with as many
+    workers; ``whole``: a whole batch's row (with its wall time and Ray's cluster start)."""
+    columns = [("code", 9), ("backend", 8), ("workers", 8), ("scenes/s", 9), ("vs base", 8)]
+    columns += [("wall s", 8)] * whole + [("cpu/scene", 10), ("own s+r", 8), ("ratio", 6)]
+    columns += [("start s", 8)] * whole
+    print("".join(f"{h:>{w}}" for h, w in columns))
+    base = {r["workers"]: r for r in rows if r["code"] == rows[0]["code"] and r["backend"] == "local"}
+    for r in rows:
+        ref = base.get(r["workers"])
+        vs = r["accepted_per_s"] / ref["accepted_per_s"] if ref else float("nan")
+        cells = [r["code"], r["backend"], r["workers"], f"{r['accepted_per_s']:.2f}", f"{vs:.2f}"]
+        if whole:
+            cells.append(f"{r['wall_s']:.1f}")
+        cells += [f"{r['cpu_all_per_accepted_s']:.3f}", f"{r['own_settle_render_cpu_s']:.3f}"]
+        cells += [f"{r['cpu_over_own']:.2f}"]
+        if whole:
+            cells.append(f"{r['cluster_start_s']:.1f}" if r["cluster_start_s"] is not None else "-")
+        print("".join(f"{c:>{w}}" for c, (_, w) in zip(cells, columns, strict=True)))
 
 
 def main() -> None:
