@@ -22,9 +22,9 @@ import numpy as np
 from scenegen.core.files import load_rows
 from scenegen.env.robosuite_env import SceneEnv
 from scenegen.env.scenes import reference_scene
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.rollout import run_primitive
 from scenegen.policy.labels import CAMERA_SIZE, CAMERAS, HORIZON
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.rollout import run_primitive
 
 REFERENCE = Path("assets/reference/reference.parquet")
 

@@ -94,6 +94,8 @@ FAMILIES = (
     ),
     ("env", ("scenegen.env",)),
     ("export", ("scenegen.export",)),
+    ("perception", ("scenegen.perception",)),
+    ("manipulation", ("scenegen.manipulation",)),
     ("policy", ("scenegen.policy",)),
     ("experiment", ("scenegen.experiment",)),
     ("cli", ("scenegen.cli",)),

@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import data, experiment, export, generator, policy, scenes
+from scenegen.cli import data, experiment, export, generator, policy, retrieval, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -49,6 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     generator.add_commands(sub)
     export.add_commands(sub)
     policy.add_commands(sub)
+    retrieval.add_commands(sub)
     experiment.add_commands(sub)
     return parser
 

@@ -11,6 +11,12 @@ from scenegen.cli.common import add_backend_arguments, backend_from, fail, first
 
 
 def add_commands(sub) -> None:
+    _add_label(sub)
+    _add_success_table(sub)
+    _add_policy(sub)
+
+
+def _add_label(sub) -> None:
     lab = sub.add_parser(
         "label",
         help="execute every grasp primitive from every scene's settled state; one row per (scene, primitive)",
@@ -38,6 +44,9 @@ def add_commands(sub) -> None:
         help="only the first N scenes of each (tag, target category) cell of --categories",
     )
     lab.add_argument("--categories", nargs="+", help="target categories for --per-cell (e.g. can mug box)")
+    lab.add_argument(
+        "--unique-category", action="store_true", help="only scenes with one object of the target's category"
+    )
     lab.add_argument("--workers", type=int, default=1, help="processes or Ray actors (default 1)")
     add_backend_arguments(lab)
     lab.add_argument(
@@ -49,6 +58,8 @@ def add_commands(sub) -> None:
     lab.add_argument("--quiet", action="store_true", help="no progress bar")
     lab.set_defaults(run=label)
 
+
+def _add_success_table(sub) -> None:
     tab = sub.add_parser(
         "success-table",
         help="success of each primitive per rare tag (and tag x category) from expert labels",
@@ -68,6 +79,8 @@ def add_commands(sub) -> None:
     tab.add_argument("--min-cell", type=int, default=30, help="scenes a (tag, category) cell needs (30)")
     tab.set_defaults(run=success_table)
 
+
+def _add_policy(sub) -> None:
     pol = sub.add_parser(
         "policy", help="train the baseline policy on labelled sources; evaluate it in closed loop"
     )
@@ -102,6 +115,12 @@ def add_commands(sub) -> None:
     ev.add_argument("--n", type=int, default=50, help="scenes to run (default 50)")
     ev.add_argument("--outside-panels", action="store_true", help="skip the transfer experiment's panels")
     ev.add_argument("--labels", type=Path, help="expert labels of these scenes (for grasp-choice failures)")
+    ev.add_argument(
+        "--retrieval",
+        default="oracle",
+        help="the retrieval head checkpoint the policy sees through (no simulator mask at decision "
+        "time), or `oracle` (default): the simulator's instance masks, the panel's ceiling",
+    )
     ev.add_argument("--out", type=Path, required=True, help="folder for the episodes and summary.json")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(run=policy_eval)
@@ -138,6 +157,7 @@ def label(args: argparse.Namespace) -> int:
                 per_cell=(args.per_cell, args.categories) if args.per_cell is not None else None,
                 outside_panels=args.outside_panels,
                 backend=backend,
+                unique=args.unique_category,
             )
     except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))
@@ -211,8 +231,8 @@ def policy_train(args: argparse.Namespace) -> int:
 
 def policy_eval(args: argparse.Namespace) -> int:
     from scenegen.env.scenes import load_scenes
+    from scenegen.manipulation.task import feasible
     from scenegen.policy.evaluate import evaluate
-    from scenegen.policy.task import feasible
 
     try:
         scenes = load_scenes(args.scenes, None if args.split == "all" else args.split)
@@ -222,11 +242,14 @@ def policy_eval(args: argparse.Namespace) -> int:
             taken = panel_scene_ids()
             scenes = [s for s in scenes if s.scene_id not in taken]
         scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
-        summary = evaluate(args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet)
+        summary = evaluate(
+            args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet, args.retrieval
+        )
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
     print(
-        f"{summary['episodes']} episodes, success {summary['success_rate']:.2%}, "
+        f"{summary['episodes']} episodes ({summary['perception']} perception), "
+        f"success {summary['success_rate']:.2%}, "
         f"failures {summary['failures']}"
     )
     return 0

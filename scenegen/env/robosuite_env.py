@@ -167,8 +167,13 @@ class SceneEnv(ManipulationEnv):
         obs["target_id"] = np.array([self.scene.target_id], dtype=np.int32)
         return obs
 
-    def camera_observations(self) -> dict[str, np.ndarray]:
-        """``<cam>_image``, ``<cam>_depth``, ``<cam>_segmentation`` of each observed camera, now."""
+    def camera_observations(self, segmentation: bool = True) -> dict[str, np.ndarray]:
+        """``<cam>_image``, ``<cam>_depth``, ``<cam>_segmentation`` of each observed camera, now.
+
+        ``segmentation=False``: what a robot has without the simulator's instance masks: no
+        ``<cam>_segmentation``, and instead ``<cam>_robot_mask`` (H, W, 1) bool, the robot's own
+        pixels, as a self-filter computes them from its known geometry and joint angles (here the
+        renderer's robot instance: the visible pixels of the robot's own meshes)."""
         if self._renderer is None:  # one GL context per environment, made on first use
             self._renderer = SceneRenderer()
         model, data = self.sim.model._model, self.sim.data._data
@@ -176,10 +181,14 @@ class SceneEnv(ManipulationEnv):
             model, data, self.cameras, self.scene.segmentation, [self.camera_size] * len(self.cameras)
         )
         out = {}
+        robot = self.scene.segmentation["robot"]
         for name, f in zip(self.cameras, frames, strict=True):
             out[f"{name}_image"] = f.rgb
             out[f"{name}_depth"] = f.depth[..., None]
-            out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]
+            if segmentation:
+                out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]
+            else:
+                out[f"{name}_robot_mask"] = (f.seg == robot)[..., None]
         return out
 
     def reward(self, action=None) -> float:

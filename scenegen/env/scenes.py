@@ -9,6 +9,8 @@ procedural proposer's default cameras, the ones the reference renders used.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -212,3 +214,30 @@ def proposal_scene(proposal, scene_id: str = "proposal", source: str = "hand-bui
         cameras=tuple(proposal.cameras) or DEFAULT_CAMERAS,
         robot_pose=tuple(proposal.condition.robot_pose),
     )
+
+
+def scene_sha256(scene: EnvScene) -> str:
+    """A stored scene's scene.json sha256; a reference layout's, of its description as JSON."""
+    if scene.path is not None:
+        return hashlib.sha256((scene.path / "scene.json").read_bytes()).hexdigest()
+    described = {
+        "objects": [o.model_dump(mode="json") for o in scene.objects],
+        "furniture": [f.model_dump(mode="json") for f in scene.furniture],
+        "lighting": scene.lighting.model_dump(mode="json"),
+        "cameras": [c.model_dump(mode="json") for c in scene.cameras],
+        "robot_pose": list(scene.robot_pose),
+        "target": scene.target,
+    }
+    return hashlib.sha256(json.dumps(described, sort_keys=True).encode()).hexdigest()
+
+
+def target_category(scene: EnvScene) -> str:
+    """The category of the scene's target object (``can``, ``mug``, ...)."""
+    return next(o.category for o in scene.objects if o.name == scene.target)
+
+
+def unique_category(scene: EnvScene) -> bool:
+    """Whether the scene holds one object of its target's category (else "retrieve the mug" is
+    ambiguous: the panels of issue 33 hold only such scenes)."""
+    category = target_category(scene)
+    return sum(o.category == category for o in scene.objects) == 1

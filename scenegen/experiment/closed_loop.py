@@ -4,13 +4,15 @@ An episode is what :func:`scenegen.policy.evaluate.run_episode` does: from the s
 policy observes, chooses a primitive, the primitive runs; after a failure it observes again and chooses
 one it has not tried, up to ``ATTEMPTS`` attempts within the task's time limit. The physics is
 deterministic, so the outcome of a primitive sequence ``(p1, ..., pk)`` from a scene is a function of
-the scene and the sequence alone. :class:`PathStore` keeps it, keyed by the scene's sha256 and the
-primitives with their versions: whether the last attempt succeeded, the simulated time so far, the
-failure rules' features of the episode so far (:func:`~scenegen.policy.failures.episode_features`) and
-the state after it (``qpos``). Policies differ only in which sequences they ask for, so twenty policies
-on one panel cost little more than the distinct sequences they choose; an observation at a decision is
-rendered from the stored state (the nominal view, or a :class:`Variant` of it). Everything is appended
-as it is measured, so a killed evaluation continues where it stopped.
+the scene and the sequence alone. :class:`PathStore` keeps it, keyed by the scene's sha256, the
+rules' version (``SEQUENCE_RULES``) and the primitives with their versions: whether the last attempt
+succeeded (the hold complete within the task's time limit, counted from the episode's start) and
+when, the simulated time so far, the failure rules' features of the last attempt
+(:func:`~scenegen.policy.failures.attempt_features`) and the state after it (``qpos``). Policies
+differ only in which sequences they ask for, so twenty policies on one panel cost little more than the
+distinct sequences they choose; an observation at a decision is rendered from the stored state (the
+nominal view, or a :class:`Variant` of it). Everything is appended as it is measured, so a killed
+evaluation continues where it stopped.
 
 :func:`evaluate_policies` runs in rounds, one attempt per round for every (policy, scene) still going:
 decide (observations rendered in a worker pool, cached on disk), then simulate the sequences nobody
@@ -33,11 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from scenegen.env.scenes import EnvScene
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.task import TIME_LIMIT
 from scenegen.policy.evaluate import ATTEMPTS
-from scenegen.policy.failures import episode_features, label_from_features
+from scenegen.policy.failures import attempt_cause, attempt_features, out_of_time
 from scenegen.policy.labels import CAMERA_SIZE, CAMERAS, HORIZON, scene_sha256, target_category
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.task import TIME_LIMIT
 from scenegen.schema.condition import RARE_TAGS
 from scenegen.store.batch import atomic_write, recover_jsonl
 
@@ -68,8 +70,14 @@ class Variant:
 NOMINAL = Variant()
 
 
+# 2: success held to the time limit from the episode's start, features per attempt, other objects
+# touched (version 1, assets/transfer/paths.jsonl: success per attempt, features over the episode)
+SEQUENCE_RULES = 2
+
+
 def path_key(sha: str, prefix: Sequence[str]) -> str:
-    return sha + "|" + ",".join(f"{p}@{PRIMITIVES[p].version}" for p in prefix)
+    steps = ",".join(f"{p}@{PRIMITIVES[p].version}" for p in prefix)
+    return f"{sha}|rules{SEQUENCE_RULES}|{steps}"
 
 
 class PathStore:
@@ -157,24 +165,27 @@ def simulate(scene: EnvScene, prefix: Sequence[str]) -> list[dict]:
     """Run ``prefix`` from ``scene``'s settled state in this process's environment; one store row per
     step of it (the sequence up to and including that primitive)."""
     from scenegen.env.episodes import EpisodeRecorder
-    from scenegen.policy.rollout import run_primitive
+    from scenegen.manipulation.rollout import run_primitive
 
     env = _env(scene)
     env.reset_to(scene)
     data = env.sim.data._data
     start = float(data.time)
+    episode = (start, float(env.target_pose()[0][2]))
     recorder = EpisodeRecorder(env, "path", observation_kind="rgbd")
     sha, rows = scene_sha256(scene), []
     for k, name in enumerate(prefix):
-        outcome, _ = run_primitive(env, name, recorder)
+        outcome, _ = run_primitive(env, name, recorder, episode=episode)
+        features = attempt_features(recorder.snapshot(), scene.target_id, k, outcome.other_touched)
         rows.append(
             {
                 "key": path_key(sha, prefix[: k + 1]),
                 "scene_sha256": sha,
                 "prefix": list(prefix[: k + 1]),
                 "success": bool(outcome.success),
+                "success_time": None if outcome.success_time is None else round(outcome.success_time, 6),
                 "time": round(float(data.time) - start, 6),
-                "features": episode_features(recorder.snapshot(), scene.target_id),
+                "features": features,
                 "qpos": data.qpos.tolist(),
             }
         )
@@ -188,7 +199,7 @@ def observe(scene: EnvScene, qpos: Sequence[float] | None, variant: Variant, inp
     (as ``variant`` shows it) at ``qpos`` (None: the settled state)."""
     import mujoco
 
-    from scenegen.policy.observation import state_features
+    from scenegen.perception.observation import state_features
     from scenegen.policy.train import policy_input
 
     env = _env(scene)
@@ -341,13 +352,17 @@ def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
     tags = [t for t in RARE_TAGS if scene.tags.get(t)]
     category = target_category(scene)
     entry = store.get(run.sha, run.prefix) if run.prefix else None
-    failure = ""
+    causes: list[str] = []
     if not run.success:
         coverage = {(t, c): n for t, c, n in policy.trained_on.get("coverage", [])} or None
-        features = entry["features"] if entry else {"mask_pixels": 0, "touched_other": False}
-        failure = label_from_features(
-            features, set(run.prefix), experts.get(run.sha, ()), tags or ["nominal"], category, coverage
-        )
+        for k, primitive in enumerate(run.prefix):
+            features = store.get(run.sha, run.prefix[: k + 1])["features"]
+            first = k == 0
+            expert = experts.get(run.sha, ())
+            causes.append(
+                attempt_cause(features, primitive, expert, tags or ["nominal"], category, coverage, first)
+            )
+        causes = causes or ["perception"]
     return {
         "policy": run.policy,
         "scene_id": scene.scene_id,
@@ -358,5 +373,7 @@ def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
         "success": run.success,
         "first_attempt": bool(run.success and len(run.prefix) == 1),
         "time": entry["time"] if entry else 0.0,
-        "failure": failure,
+        "failure": causes[0] if causes else "",
+        "attempt_failures": causes,
+        "out_of_time": bool(not run.success and entry is not None and out_of_time(entry["time"])),
     }

@@ -36,9 +36,9 @@ from scenegen.experiment.transfer_sources import (
     generate_cells,
     rejection_sampling_cost,
 )
+from scenegen.manipulation.task import feasible
 from scenegen.policy.labels import current, label_scenes, scene_sha256
 from scenegen.policy.panels import load_panels
-from scenegen.policy.task import feasible
 from scenegen.store.batch import atomic_write
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.policy.panels import PANEL_TAGS
-from scenegen.policy.primitives import PRIMITIVES
 
 ARMS = ("A", "A+", "B", "C", "D", "E")
 

@@ -13,6 +13,7 @@ import numpy as np
 from scenegen.core.files import folder_sha256
 from scenegen.experiment.transfer_config import ARMS, TransferConfig
 from scenegen.experiment.transfer_stats import difference, interval, success_grid
+from scenegen.policy.failures import LABELS
 from scenegen.store.batch import atomic_write
 
 PRIMARY = ("D", "A+")  # the primary endpoint: rare-panel success of D minus A+ at the default alpha
@@ -47,16 +48,12 @@ def compute_metrics(config: TransferConfig, all_runs: list[dict], panels: dict, 
     for arm in ARMS:
         chosen = select(arm)
         names = {r["name"] for r in chosen}
-        failures = {
-            panel: dict(
-                Counter(
-                    r["failure"]
-                    for r in episodes[(panel, "nominal")]
-                    if r["policy"] in names and not r["success"]
-                )
-            )
-            for panel in ("rare", "common")
-        }
+        failures = {}
+        for panel in ("rare", "common"):
+            failed = [r for r in episodes[(panel, "nominal")] if r["policy"] in names and not r["success"]]
+            counts = Counter(r["failure"] for r in failed)
+            counts["out_of_time"] = sum(bool(r.get("out_of_time")) for r in failed)
+            failures[panel] = dict(counts)
         arms[arm] = {
             "alpha": config.alpha if arm not in ("A", "A+") else 0.0,
             "seeds": [r["seed"] for r in chosen],
@@ -196,7 +193,7 @@ def report(config: TransferConfig, metrics: dict) -> str:
         lines += [f"- {a}: {_fmt(v)} (nominal {_fmt(arms[a]['rare'])})" for a, v in pert["rare"].items()]
     lines += [
         "",
-        "Failure labels (failed episodes, all seeds):",
+        "Failure labels (failed episodes, all seeds): the first attempt's cause; out_of_time beside it:",
         "",
         "| arm | panel | " + " | ".join(_LABELS) + " |",
         "|---" * (len(_LABELS) + 2) + "|",
@@ -207,7 +204,7 @@ def report(config: TransferConfig, metrics: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-_LABELS = ("perception", "grasp_choice", "control", "dynamics", "data_coverage", "timing", "unknown")
+_LABELS = (*LABELS, "out_of_time")  # the first attempt's cause; the time-limit flag beside it
 _COLOURS = [(180, 120, 40), (40, 40, 200), (60, 160, 60), (30, 140, 220), (160, 60, 160), (120, 120, 120)]
 
 

@@ -1,1 +1,3 @@
-"""Recovery policies: grasp primitives, expert labels and the baseline policy (issue 19 lands here)."""
+"""Learning and judging what to do: expert labels (``labels``), success tables, failure labels, the
+baseline primitive chooser (``network``, ``train``, ``evaluate``) and the panels. Seeing is
+``scenegen.perception``, acting ``scenegen.manipulation``."""

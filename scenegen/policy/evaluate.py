@@ -13,19 +13,36 @@ import torch
 
 from scenegen.env.episodes import EpisodeRecorder, write_episode
 from scenegen.env.scenes import EnvScene
-from scenegen.policy.failures import failure_label
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.rollout import run_primitive
+from scenegen.manipulation.task import TIME_LIMIT, feasible
+from scenegen.policy.failures import failure_labels
 from scenegen.policy.labels import CAMERA_SIZE, scene_sha256, target_category
 from scenegen.policy.network import PrimitivePolicy
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.rollout import run_primitive
-from scenegen.policy.task import TIME_LIMIT, feasible
 from scenegen.policy.train import CAMERA, policy_input
 
 ATTEMPTS = 3
+ORACLE = "oracle"  # the retrieval setting that reads the simulator's instance masks (each panel's ceiling)
 
 
-def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, expert=(), coverage=None):
-    """One closed-loop episode on ``scene``; returns the finished Episode (failure label in info)."""
+def run_episode(
+    env,
+    policy: PrimitivePolicy,
+    scene: EnvScene,
+    episode_id: str,
+    expert=(),
+    coverage=None,
+    perception=None,
+):
+    """One closed-loop episode on ``scene``; returns the finished Episode (failure labels in info).
+
+    ``perception``: the learned target finder (a :class:`~scenegen.perception.retrieval.perceive.
+    RetrievalPerception`) every decision and re-observation goes through, or None for the oracle
+    (the simulator's instance masks). With one, each decision's prediction is scored against the
+    true segmentation afterwards (``info["perception"]``: per decision, per camera IoU, hit, wrong
+    object, miss): scoring is the only reader of the segmentation."""
+    from scenegen.perception.observation import observe
+
     env.reset_to(scene)
     recorder = EpisodeRecorder(env, episode_id, observation_kind="rgbd")
     recorder.episode.scene |= {
@@ -33,21 +50,34 @@ def run_episode(env, policy: PrimitivePolicy, scene: EnvScene, episode_id: str, 
         "target_category": target_category(scene),
     }
     tried: set[str] = set()
+    touched_other: list[bool] = []
+    scores: list[dict] = []
     success = False
     start = float(env.sim.data._data.time)
+    episode_clock = (start, float(env.target_pose()[0][2]))
     for _ in range(min(ATTEMPTS, len(policy.primitives))):  # each primitive at most once
         if float(env.sim.data._data.time) - start >= TIME_LIMIT:  # the task's time limit: no new attempt
             break
-        obs = env.camera_observations()
-        x = policy_input(obs, scene.target_id)
+        observed = observe(env, perception)
+        if perception is not None:
+            from scenegen.perception.retrieval.evaluate import score_observation
+
+            scores.append(score_observation(env, observed[0]))
+        x = policy_input(observed[0], scene.target_id)
         choice = policy.choose(torch.from_numpy(x), exclude=tried)
         tried.add(choice)
-        outcome, _ = run_primitive(env, choice, recorder)
+        outcome, _ = run_primitive(
+            env, choice, recorder, episode=episode_clock, perception=perception, observed=observed
+        )
+        touched_other.append(outcome.other_touched)
         if outcome.success:
             success = True
             break
-    episode = recorder.finish(success)
-    episode.info["failure"] = failure_label(episode, scene.target_id, expert, coverage)
+    info = {"touched_other": touched_other, "perception_kind": "oracle" if perception is None else "learned"}
+    if perception is not None:
+        info["perception"] = scores
+    episode = recorder.finish(success, **info)
+    episode.info |= failure_labels(episode, scene.target_id, expert, coverage)
     episode.info["attempts"] = len(tried)
     return episode
 
@@ -58,12 +88,20 @@ def evaluate(
     out: Path,
     labels: Path | None = None,
     progress: bool = False,
+    retrieval: Path | str | None = None,
 ) -> dict:
-    """Run the policy on every feasible scene; write episodes under ``out`` and ``summary.json``."""
+    """Run the policy on every feasible scene; write episodes under ``out`` and ``summary.json``.
+    ``retrieval``: the retrieval head's checkpoint folder the policy sees through, or ``"oracle"`` /
+    None for the simulator's instance masks."""
     from tqdm import tqdm
 
     from scenegen.env.robosuite_env import SceneEnv
 
+    perception = None
+    if retrieval is not None and str(retrieval) != ORACLE:
+        from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+        perception = RetrievalPerception.load(retrieval)
     policy = PrimitivePolicy.load(checkpoint)
     unknown = sorted(set(policy.primitives) - set(PRIMITIVES))
     if unknown:
@@ -82,7 +120,7 @@ def evaluate(
     env = SceneEnv(
         scenes[0], cameras=[CAMERA, "side"], camera_size=CAMERA_SIZE, render_each_step=False, horizon=6000
     )
-    results = []
+    results, first_hits = [], []
     try:
         for i, scene in enumerate(tqdm(scenes, desc="episodes", disable=not progress)):
             episode = run_episode(
@@ -92,16 +130,22 @@ def evaluate(
                 f"{i:04d}_{scene.scene_id}",
                 expert.get(scene_sha256(scene), ()),
                 coverage,
+                perception,
             )
             write_episode(out / episode.episode_id, episode)
-            results.append((episode.success, episode.info["failure"]))
+            results.append((episode.success, episode.info["failure"], episode.info["out_of_time"]))
+            first_hits.extend(score["hit"] for score in episode.info.get("perception", [])[:1])
     finally:
         env.close()
     summary = {
         "checkpoint": str(checkpoint),
+        "perception": ORACLE if perception is None else str(retrieval),
         "episodes": len(results),
-        "success_rate": round(sum(s for s, _ in results) / len(results), 4),
-        "failures": dict(Counter(f for s, f in results if not s)),
+        "success_rate": round(sum(s for s, _, _ in results) / len(results), 4),
+        "failures": dict(Counter(f for s, f, _ in results if not s)),
+        "out_of_time": sum(late for s, _, late in results if not s),
     }
+    if first_hits:
+        summary["first_decision_target_hit"] = round(sum(first_hits) / len(first_hits), 4)
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

@@ -16,23 +16,20 @@ observation) it already holds, from that log or from an existing ``out``, and ru
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from scenegen.env.scenes import EnvScene, load_scenes
-from scenegen.policy.observation import KINDS
+from scenegen.env.scenes import EnvScene, load_scenes, scene_sha256, target_category, unique_category
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.task import feasible, within_limit
+from scenegen.perception.observation import CAMERA_SIZE, CAMERAS, KINDS
 from scenegen.policy.panels import panel_scene_ids
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.task import feasible
 from scenegen.schema.condition import RARE_TAGS
 from scenegen.store.batch import recover_jsonl
 
-CAMERAS = ("front", "side")  # what the planners observe
-CAMERA_SIZE = (320, 240)  # px: a 3 cm spoon covers enough pixels to be seen from the default cameras
 HORIZON = 3000  # control steps: longer than any primitive
 
 
@@ -55,26 +52,6 @@ class Job:
 
 def _key(row: dict) -> tuple[str, str, int, str]:
     return (row["scene_sha256"], row["primitive"], row["primitive_version"], row.get("observation", "rgbd"))
-
-
-def scene_sha256(scene: EnvScene) -> str:
-    """A stored scene's scene.json sha256; a reference layout's, of its description as JSON."""
-    if scene.path is not None:
-        return hashlib.sha256((scene.path / "scene.json").read_bytes()).hexdigest()
-    described = {
-        "objects": [o.model_dump(mode="json") for o in scene.objects],
-        "furniture": [f.model_dump(mode="json") for f in scene.furniture],
-        "lighting": scene.lighting.model_dump(mode="json"),
-        "cameras": [c.model_dump(mode="json") for c in scene.cameras],
-        "robot_pose": list(scene.robot_pose),
-        "target": scene.target,
-    }
-    return hashlib.sha256(json.dumps(described, sort_keys=True).encode()).hexdigest()
-
-
-def target_category(scene: EnvScene) -> str:
-    """The category of the scene's target object (``can``, ``mug``, ...)."""
-    return next(o.category for o in scene.objects if o.name == scene.target)
 
 
 def _row(job: Job, outcome) -> dict:
@@ -115,7 +92,7 @@ def _run(job: Job) -> dict:
     """Execute one primitive from the scene's settled state in this process's environment."""
     global _ENV
     from scenegen.env.robosuite_env import SceneEnv
-    from scenegen.policy.rollout import run_primitive
+    from scenegen.manipulation.rollout import run_primitive
 
     if _ENV is None:
         _ENV = SceneEnv(
@@ -151,15 +128,23 @@ def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str], observatio
     ]
 
 
+def timed(row: dict) -> bool:
+    """Whether a label row's success can be judged by today's time limit (``task.within_limit``):
+    rows were written before the limit held on a success, but each keeps its execution's
+    ``duration``; every row of assets/transfer/labels.parquet ended within the 45 s limit."""
+    return within_limit(bool(row["success"]), float(row["duration"]), row.get("success_time")) is not None
+
+
 def current(row: dict, observation: str = "rgbd") -> bool:
     """Whether a label row answers for today's primitives: the primitive's current version, planned
     from ``observation`` (the state ablation's rows say what a planner with the simulator's state
-    would do, not what one with the cameras does)."""
+    would do, not what one with the cameras does), judged by today's time limit."""
     primitive = PRIMITIVES.get(row["primitive"])
     return (
         primitive is not None
         and row.get("primitive_version") == primitive.version
         and row.get("observation", "rgbd") == observation
+        and timed(row)
     )
 
 
@@ -206,7 +191,7 @@ def _cached(out: Path, log: Path) -> dict[tuple, dict]:
 
         rows += pq.read_table(out).to_pylist()
     rows += recover_jsonl(log)
-    return {_key(r): r for r in rows}
+    return {_key(r): r for r in rows if timed(r)}  # a row the time limit cannot judge is relabelled
 
 
 def label(
@@ -222,6 +207,7 @@ def label(
     per_cell: tuple[int, Sequence[str]] | None = None,
     outside_panels: bool = False,
     backend=None,
+    unique: bool = False,
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
@@ -229,12 +215,15 @@ def label(
     source order), for a success table per tag without labelling every scene; ``per_cell`` (N,
     categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
     selection when both are given); ``outside_panels``: leave out the transfer experiment's panel
-    layouts. ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled).
+    layouts; ``unique``: only scenes holding one object of the target's category (chosen before
+    ``per_tag``). ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled).
     ``backend``: where the ``workers`` run (scenegen.runner.executors.Backend; default a local pool)."""
     try:
         scenes = load_scenes(source, split)
     except (OSError, ValueError) as exc:
         raise LabelError(f"{source}: {str(exc).splitlines()[0]}") from None
+    if unique:
+        scenes = [s for s in scenes if unique_category(s)]
     if per_tag is not None or per_cell is not None:
         chosen = {id(s) for s in per_tag_selection(scenes, per_tag)} if per_tag is not None else set()
         if per_cell is not None:

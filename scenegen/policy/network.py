@@ -22,16 +22,17 @@ INPUT_SIZE = (96, 72)  # (width, height) the crop is resized to
 CROP = 0.5  # the crop around the target: half the frame's width and height
 
 
-def observation_tensor(image: np.ndarray, depth: np.ndarray, seg: np.ndarray, target_id: int) -> np.ndarray:
-    """(5, H, W) float32 network input (H, W = ``INPUT_SIZE``) from one camera's frames.
+def observation_tensor(image: np.ndarray, depth: np.ndarray, target_mask: np.ndarray) -> np.ndarray:
+    """(5, H, W) float32 network input (H, W = ``INPUT_SIZE``) from one camera's frames and the
+    target's mask (H, W) bool: the simulator's (oracle) or the retrieval head's.
 
     The frames are cropped to ``CROP`` (a fraction of the frame) around the target's mask, so small
     targets (a 3 cm spoon) keep enough pixels, and resized with area averaging: the mask channel holds
     the fraction of each cell that is target, never rounded away."""
     import cv2
 
-    depth, seg = np.squeeze(depth).astype(np.float32), np.squeeze(seg)
-    mask = (seg == target_id).astype(np.float32)
+    depth = np.squeeze(depth).astype(np.float32)
+    mask = np.squeeze(target_mask).astype(np.float32)
     height, width = mask.shape
     ch, cw = int(height * CROP), int(width * CROP)
     rows, cols = np.nonzero(mask)
@@ -52,7 +53,7 @@ INPUTS = ("rgbd", "state")  # what the network reads: the camera crop, or the st
 
 class PrimitivePolicy(nn.Module):
     """``rgbd``: Conv(5->16->32->64, stride 2) + global average pool + linear head: (B, 5, H, W) ->
-    (B, P). ``state`` (the ablation): an MLP over :func:`~scenegen.policy.observation.state_features`,
+    (B, P). ``state`` (the ablation): an MLP over :func:`~scenegen.perception.observation.state_features`,
     (B, STATE_SIZE) -> (B, P)."""
 
     def __init__(self, primitives: list[str], width: int = 32, inputs: str = "rgbd"):
@@ -64,7 +65,7 @@ class PrimitivePolicy(nn.Module):
         self.inputs = inputs
         self.trained_on: dict = {}  # the checkpoint's training summary (data, coverage, losses)
         if inputs == "state":
-            from scenegen.policy.observation import STATE_SIZE
+            from scenegen.perception.observation import STATE_SIZE
 
             self.features = nn.Sequential(
                 nn.Linear(STATE_SIZE, 2 * width), nn.ReLU(), nn.Linear(2 * width, 2 * width), nn.ReLU()

@@ -22,9 +22,9 @@ from tqdm import tqdm
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
 from scenegen.env.scenes import EnvScene, load_scenes
+from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.policy.labels import CAMERA_SIZE, current, scene_sha256, target_category
 from scenegen.policy.network import PrimitivePolicy, observation_tensor
-from scenegen.policy.primitives import PRIMITIVES
 
 CAMERA = "front"  # the policy looks through the front camera, at the labeller's CAMERA_SIZE
 
@@ -44,11 +44,16 @@ class Examples:
     inputs: str = "rgbd"  # what x holds: camera crops, or the state ablation's features
 
 
-def policy_input(obs: dict, target_id: int) -> np.ndarray:
-    """The network input (5, H, W) from a camera observation dict (the front camera's frames)."""
-    return observation_tensor(
-        obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], obs[f"{CAMERA}_segmentation"], target_id
-    )
+def policy_input(obs: dict, target_id: int | None = None) -> np.ndarray:
+    """The network input (5, H, W) from a camera observation dict (the front camera's frames): the
+    target's mask is the retrieval head's prediction where the observation holds one
+    (``front_predicted_target``), else the simulator's instance mask of ``target_id`` (oracle)."""
+    predicted = obs.get(f"{CAMERA}_predicted_target")
+    if predicted is not None:
+        mask = np.squeeze(predicted).astype(bool)
+    else:
+        mask = np.squeeze(obs[f"{CAMERA}_segmentation"]) == target_id
+    return observation_tensor(obs[f"{CAMERA}_image"], obs[f"{CAMERA}_depth"], mask)
 
 
 def render_observation(env, scene: EnvScene) -> np.ndarray:
@@ -79,7 +84,11 @@ def labelled_examples(
             bits.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
     shas = [sha for sha in by_sha if sha in bits]
     if not shas:
-        why = f" ({stale} rows of older primitive versions or another observation: relabel)" if stale else ""
+        why = (
+            f" ({stale} rows of older primitive versions, another observation or an unjudged time: relabel)"
+            if stale
+            else ""
+        )
         raise ValueError(f"no labelled scene: the labels name none of the given scenes (same split?){why}")
     own = env is None
     env = env or SceneEnv(by_sha[shas[0]], cameras=[CAMERA], camera_size=CAMERA_SIZE, render_each_step=False)

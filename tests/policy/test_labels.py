@@ -145,3 +145,19 @@ def test_ray_actors_label_the_same_file(labelled: Path, demo_batch: Path, tmp_pa
     argv = ["label", str(demo_batch), "--out", str(out), "--limit", "2", "--primitives", *PRIMITIVES]
     assert main([*argv, "--workers", "2", "--backend", "ray", "--quiet"]) == 0
     assert out.read_bytes() == labelled.read_bytes()
+
+
+def test_the_committed_label_stores_obey_the_time_limit():
+    """Every success in the committed label stores ended within the task's time limit (the rows keep
+    each execution's duration; version 1 let a success count whenever it came)."""
+    import pyarrow.parquet as pq
+
+    from scenegen.manipulation.task import TIME_LIMIT
+    from scenegen.policy.labels import timed
+
+    root = Path(__file__).resolve().parents[2] / "assets"
+    stores = [root / "transfer" / "labels.parquet", *sorted((root / "policy" / "labels").glob("*.parquet"))]
+    for store in stores:
+        rows = pq.read_table(store).to_pylist()
+        assert rows and all(timed(r) for r in rows), store
+        assert max(r["duration"] for r in rows if r["success"]) <= TIME_LIMIT, store

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from scenegen.env.scenes import batch_scenes
+from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.policy.network import PrimitivePolicy
-from scenegen.policy.primitives import PRIMITIVES
 
 
 @pytest.fixture(scope="module")
@@ -90,15 +90,24 @@ def test_only_labels_of_the_current_primitives_seen_through_the_cameras_train_it
     from scenegen.policy.train import current, labelled_examples
 
     sha = scene_sha256(batch_scenes(demo_batch)[0])
-    row = {"scene_sha256": sha, "primitive": "top_grasp", "success": True, "observation": "rgbd"}
+    row = {
+        "scene_sha256": sha,
+        "primitive": "top_grasp",
+        "success": True,
+        "observation": "rgbd",
+        "duration": 9.0,
+    }
     version = PRIMITIVES["top_grasp"].version
     rows = [
         row | {"primitive_version": version - 1},
         row | {"primitive_version": version, "observation": "state"},
+        row | {"primitive_version": version, "duration": 50.0},  # a success the time limit cannot judge
     ]
     assert not any(map(current, rows)) and current(row | {"primitive_version": version})
     pq.write_table(pa.Table.from_pylist(rows), tmp_path / "stale.parquet")
-    with pytest.raises(ValueError, match="2 rows of older primitive versions or another observation"):
+    with pytest.raises(
+        ValueError, match="3 rows of older primitive versions, another observation or an unjudged time"
+    ):
         labelled_examples([(demo_batch, tmp_path / "stale.parquet")], split=None)
 
 

@@ -21,6 +21,7 @@ def rows(tag: str | None, category: str, primitive: str, successes: int, n: int)
             "target_category": category,
             "primitive": primitive,
             "success": i < successes,
+            "duration": 10.0,
         }
         for i in range(n)
     ]
@@ -70,8 +71,8 @@ def test_tables_combine_once_per_scene_and_primitive_leaving_stale_rows_out(tmp_
     import pyarrow.parquet as pq
 
     from scenegen.cli import main
+    from scenegen.manipulation.primitives import PRIMITIVES
     from scenegen.policy.labels import current_rows
-    from scenegen.policy.primitives import PRIMITIVES
 
     version = PRIMITIVES["top_grasp"].version
     labelled = [

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scenegen.perception.robot_state import grip_site
+
 OPEN, CLOSE = -1.0, 1.0  # robosuite gripper action
 POS_STEP = 0.05  # m per unit action (OSC_POSE output_max, BASIC config)
 ROT_STEP = 0.5  # rad per unit action
@@ -56,22 +58,6 @@ class MotionResult:
     steps: int
     position_error: float  # m
     rotation_error: float  # rad
-
-
-def grip_site(env) -> tuple[np.ndarray, np.ndarray]:
-    """The grip site's position (3,) and rotation (3, 3), from the robot's own state."""
-    robot = env.robots[0]
-    data = env.sim.data._data
-    site = robot.eef_site_id["right"]
-    return data.site_xpos[site].copy(), data.site_xmat[site].reshape(3, 3).copy()
-
-
-def finger_gap(env) -> float:
-    """How far apart the fingers are (m, 0 when closed on nothing), from the finger joints
-    (proprioception): a hand commanded closed that stays apart holds something."""
-    robot = env.robots[0]
-    qpos = env.sim.data._data.qpos[robot._ref_gripper_joint_pos_indexes["right"]]
-    return float(np.abs(qpos).sum())
 
 
 def servo(

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.policy.motion import CLOSE, OPEN, down_grasp, finger_gap, grip_site, hold, servo, side_grasp
-from scenegen.policy.observation import TargetView, observe
+from scenegen.manipulation.motion import CLOSE, OPEN, down_grasp, hold, servo, side_grasp
+from scenegen.perception.observation import TargetView, observe
+from scenegen.perception.robot_state import finger_gap, grip_site
 
 MAX_GRASP_WIDTH = 0.07  # m: what the 8 cm hand spans with a margin for the estimate's error
 ROUND = 1.15  # a footprint whose extents differ by less than this ratio has no major axis
@@ -44,6 +45,9 @@ CLOSE_STEPS, HOLD_STEPS = 15, 30  # control steps to close the hand; to hold the
 
 @dataclass(frozen=True)
 class Primitive:
+    """``plan(view) -> params``; ``execute(env, params, step=None, look=None)``: ``step`` takes an
+    action, ``look()`` re-observes (-> observation, view) for primitives that look again."""
+
     name: str
     version: int
     plan: Callable[[TargetView], dict]
@@ -113,7 +117,7 @@ def plan_top_grasp(view: TargetView) -> dict:
 
 
 @primitive("top_grasp", version=1)(plan_top_grasp)
-def execute_top_grasp(env, params: dict, step=None) -> None:
+def execute_top_grasp(env, params: dict, step=None, look=None) -> None:
     rotation = down_grasp(np.asarray(params["closing"]))
     position = np.asarray(params["position"])
     approach = np.array([position[0], position[1], params["approach_z"]])
@@ -178,7 +182,7 @@ def _side_standoff(env, params: dict, step) -> np.ndarray:
 
 
 @primitive("side_grasp", version=1)(plan_side_grasp)
-def execute_side_grasp(env, params: dict, step=None) -> None:
+def execute_side_grasp(env, params: dict, step=None, look=None) -> None:
     rotation = _side_standoff(env, params, step)
     _grasp_and_lift(env, np.asarray(params["position"]), rotation, step)
 
@@ -203,7 +207,7 @@ def plan_toppled_grasp(view: TargetView) -> dict:
 
 
 @primitive("toppled_grasp", version=1)(plan_toppled_grasp)
-def execute_toppled_grasp(env, params: dict, step=None) -> None:
+def execute_toppled_grasp(env, params: dict, step=None, look=None) -> None:
     execute_top_grasp(env, params, step)
 
 
@@ -237,7 +241,7 @@ def plan_push_from_edge(view: TargetView) -> dict:
 
 
 @primitive("push_from_edge_then_grasp", version=1)(plan_push_from_edge)
-def execute_push_from_edge(env, params: dict, step=None) -> None:
+def execute_push_from_edge(env, params: dict, step=None, look=None) -> None:
     rotation = down_grasp(np.asarray(params["closing"]))
     start = np.asarray(params["start"])
     servo(env, start + np.array([0, 0, 0.12]), rotation, CLOSE, max_steps=100, step=step)
@@ -245,12 +249,13 @@ def execute_push_from_edge(env, params: dict, step=None) -> None:
     servo(env, params["position"], rotation, CLOSE, max_steps=80, speed=0.3, step=step)
     here, _ = grip_site(env)
     servo(env, here + np.array([0, 0, 0.12]), rotation, OPEN, max_steps=40, step=step)
-    _regrasp(env, step)
+    _regrasp(env, step, look)
 
 
-def _regrasp(env, step) -> None:
-    """Re-observe (a new decision point's frames) and top-grasp from there."""
-    _, view = observe(env)
+def _regrasp(env, step, look=None) -> None:
+    """Re-observe (a new decision point's frames, through ``look``: the episode's perception, by
+    default the oracle's) and top-grasp from there."""
+    _, view = look() if look is not None else observe(env)
     if view is not None:
         execute_top_grasp(env, plan_top_grasp(view), step)
 
@@ -282,7 +287,7 @@ HELD_GAP = 0.01  # m: fingers commanded closed but this far apart hold the targe
 
 
 @primitive("pull_out_then_grasp", version=3)(plan_pull_out)
-def execute_pull_out(env, params: dict, step=None) -> None:
+def execute_pull_out(env, params: dict, step=None, look=None) -> None:
     rotation = _side_standoff(env, params, step)
     _close_at(env, params["position"], rotation, step)
     servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
@@ -295,4 +300,4 @@ def execute_pull_out(env, params: dict, step=None) -> None:
     servo(env, here + np.array([back[0], back[1], 0.0]), rotation, OPEN, max_steps=40, step=step)
     here, _ = grip_site(env)
     servo(env, here + np.array([0.0, 0.0, 0.15]), rotation, OPEN, max_steps=60, step=step)
-    _regrasp(env, step)
+    _regrasp(env, step, look)

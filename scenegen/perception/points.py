@@ -1,4 +1,5 @@
-"""What a robot sees of its target in one RGB-D frame with the target's instance mask.
+"""What a robot sees of its target in one RGB-D frame with the target's mask (the simulator's
+instance mask in the oracle setting, the retrieval head's prediction otherwise).
 
 ``target_points`` back-projects the masked depth pixels into the world frame through the camera's
 intrinsics and pose (depth is along the optical axis, in metres; images top row first, as the
@@ -24,12 +25,18 @@ def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camer
 
     ``depth`` (H, W) metres, ``seg`` (H, W) instance ids, both top row first; ``cam`` the camera
     they came from, its ``width`` and ``height`` those of the frame."""
-    depth, seg = np.squeeze(depth), np.squeeze(seg)
+    return masked_points(depth, np.squeeze(seg) == target_id, cam)
+
+
+def masked_points(depth: np.ndarray, mask: np.ndarray, cam: Camera) -> np.ndarray:
+    """World points (N, 3) of the pixels of ``mask`` (H, W) bool that have depth (see
+    :func:`target_points`)."""
+    depth, mask = np.squeeze(depth), np.squeeze(mask)
     height, width = depth.shape
     if (cam.width, cam.height) != (width, height):
         cam = cam.model_copy(update={"width": width, "height": height})
     k = cam.intrinsics()
-    v, u = np.nonzero((seg == target_id) & (depth > 0))
+    v, u = np.nonzero(mask & (depth > 0))
     z = depth[v, u].astype(float)
     # pixel centres; image rows grow downwards, the camera's y axis points up
     x_cam = (u + 0.5 - k["cx"]) * z / k["fx"]

@@ -3,17 +3,25 @@ The observation is rendered once, at the decision point, before the primitive (o
 
 from __future__ import annotations
 
-from scenegen.policy.observation import KINDS, observe, observe_state
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.task import RetrieveMonitor, RetrieveOutcome
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.task import RetrieveMonitor, RetrieveOutcome
+from scenegen.perception.observation import KINDS, observe, observe_state
 
 
 def run_primitive(
-    env, name: str, recorder=None, observation_kind: str = "rgbd"
+    env,
+    name: str,
+    recorder=None,
+    observation_kind: str = "rgbd",
+    episode: tuple[float, float] | None = None,
+    perception=None,
+    observed: tuple | None = None,
 ) -> tuple[RetrieveOutcome, dict | None]:
     """Observe (``rgbd``, or the ``state`` ablation), plan ``name`` and execute it from the
     environment's current state; the outcome as the simulator measured it and the planned parameters
-    (None when the target was not seen)."""
+    (None when the target was not seen). ``episode``: (start time, the target's settled height) of
+    the episode this attempt belongs to (default: it starts now), so that time, the limit and the
+    lift count from the episode's start, not the attempt's."""
     if observation_kind not in KINDS:
         raise ValueError(f"observation_kind {observation_kind!r}: choose one of {', '.join(KINDS)}")
     if recorder is not None and recorder.episode.observation_kind != observation_kind:
@@ -21,8 +29,12 @@ def run_primitive(
             f"observation_kind {observation_kind!r}: "
             f"the episode records {recorder.episode.observation_kind!r}"
         )
-    monitor = RetrieveMonitor(env)
-    obs, view = observe(env) if observation_kind == "rgbd" else observe_state(env)
+    start, settled_z = episode if episode is not None else (None, None)
+    monitor = RetrieveMonitor(env, start=start, settled_z=settled_z)
+    if observed is not None:
+        obs, view = observed
+    else:
+        obs, view = observe(env, perception) if observation_kind == "rgbd" else observe_state(env)
     if recorder is not None:
         recorder.decide(obs, {"primitive": name, "observation_kind": observation_kind})
     if view is None:
@@ -38,5 +50,5 @@ def run_primitive(
             env.step(action)
         monitor.update()
 
-    chosen.execute(env, params, step=step)
+    chosen.execute(env, params, step=step, look=lambda: observe(env, perception))
     return monitor.outcome, params

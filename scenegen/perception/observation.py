@@ -2,11 +2,17 @@
 
 Two observation kinds, never mixed: ``rgbd`` (:func:`observe`), what a real robot has: the frames are
 rendered once, at the decision point, from every camera the environment observes, and give the
-target's points (its instance mask and depth, back-projected) and the other instances' points (objects
-and furniture; not the table, the arena or the robot). ``state`` (:func:`observe_state`), the
-ablation: the same summary computed from the simulator's state, every vertex of the target's and the
-other objects' meshes and of the furniture's boxes at their current poses, so a primitive's planner
-sees the whole object, occluded or not. Both add the robot's own state.
+target's points (its mask and depth, back-projected) and the other objects' points. Where the
+target's mask comes from is the ``perception``: a learned one (the retrieval head,
+``perception/retrieval/perceive.py``: frames and the requested category in, the target's pixels
+out), for which nothing here reads a segmentation, the other objects being the depth points above
+the table that are neither the robot's own pixels nor the predicted target's; or, given none, the
+oracle: the simulator's instance masks (the target's, and the other instances': objects and
+furniture; not the table, the arena or the robot), which sets each panel's ceiling. ``state``
+(:func:`observe_state`), the ablation: the same summary computed from the simulator's state, every
+vertex of the target's and the other objects' meshes and of the furniture's boxes at their current
+poses, so a primitive's planner sees the whole object, occluded or not. Both add the robot's own
+state.
 """
 
 from __future__ import annotations
@@ -15,8 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.policy.motion import grip_site
-from scenegen.policy.perception import TargetEstimate, estimate_target, target_points
+from scenegen.env.scenes import target_category
+from scenegen.perception.points import TargetEstimate, estimate_target, masked_points, target_points
+from scenegen.perception.robot_state import grip_site
 
 
 @dataclass(frozen=True)
@@ -30,12 +37,20 @@ class TargetView:
     hand_closing: tuple[float, float] = (0.0, 1.0)  # the fingers' closing axis now, (x, y) (proprioception)
 
 
+CAMERAS = ("front", "side")  # what the planners observe
+CAMERA_SIZE = (320, 240)  # px: a 3 cm spoon covers enough pixels to be seen from the default cameras
 BACKGROUND = ("arena", "table", "robot")
 KINDS = ("rgbd", "state")
 
 
-def observe(env) -> tuple[dict, TargetView | None]:
-    """The camera observation now and what a planner sees in it (None: the target is not seen)."""
+def observe(env, perception=None) -> tuple[dict, TargetView | None]:
+    """The camera observation now and what a planner sees in it (None: the target is not seen).
+    ``perception``: a learned target finder (``target_masks(obs, cameras, category)``), or None for
+    the oracle's instance masks. With one, the observation holds no segmentation: per camera the
+    image, depth, the robot's own pixels (``<cam>_robot_mask``) and the predicted target
+    (``<cam>_predicted_target``)."""
+    if perception is not None:
+        return _observe_learned(env, perception)
     obs = env.camera_observations()
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
@@ -52,6 +67,38 @@ def observe(env) -> tuple[dict, TargetView | None]:
     points = np.concatenate(others) if others else np.zeros((0, 3))
     base, closing = _robot_state(env)
     return obs, TargetView(estimate, points, base, closing)
+
+
+TABLE_MARGIN = 0.05  # m beyond the table's edges where points still count (an overhanging object)
+ABOVE_TABLE = 0.0015  # m: points lower than this above the table top are the table (a fork lies 3 mm high)
+
+
+def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
+    frames = env.camera_observations(segmentation=False)
+    # only what a robot has: the observation is built from named keys, never passed through whole
+    kept = ("image", "depth", "robot_mask")
+    obs = {f"{name}_{kind}": frames[f"{name}_{kind}"] for name in env.cameras for kind in kept}
+    scene = env.scene
+    cameras = {c.name: c for c in scene.cameras}
+    masks = perception.target_masks(obs, env.cameras, target_category(scene))
+    target, others = [], []
+    for name in env.cameras:
+        depth, robot = obs[f"{name}_depth"], np.squeeze(obs[f"{name}_robot_mask"], -1)
+        mask = masks[name]
+        obs[f"{name}_predicted_target"] = mask[..., None]
+        target.append(masked_points(depth, mask, cameras[name]))
+        rest = masked_points(depth, ~mask & ~robot, cameras[name])
+        on_table = (
+            (rest[:, 2] > TABLE_TOP + ABOVE_TABLE)
+            & (np.abs(rest[:, 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
+            & (np.abs(rest[:, 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
+        )
+        others.append(rest[on_table])
+    estimate = estimate_target(np.concatenate(target))
+    if estimate is None:
+        return obs, None
+    base, closing = _robot_state(env)
+    return obs, TargetView(estimate, np.concatenate(others), base, closing)
 
 
 def _robot_state(env) -> tuple[tuple[float, float], tuple[float, float]]:

@@ -11,9 +11,9 @@ import torch
 from scenegen.core.files import load_rows
 from scenegen.env.robosuite_env import SceneEnv
 from scenegen.env.scenes import reference_scene
+from scenegen.perception.observation import CATEGORIES, STATE_SIZE, state_features
 from scenegen.policy.labels import CAMERA_SIZE
 from scenegen.policy.network import PrimitivePolicy
-from scenegen.policy.observation import CATEGORIES, STATE_SIZE, state_features
 
 REFERENCE = Path("assets/reference/reference.parquet")
 

@@ -12,10 +12,10 @@ from scenes import place, proposal
 from scenegen.assets.catalog import load_catalog
 from scenegen.core.layout import FURNITURE_HOME
 from scenegen.env.scenes import proposal_scene
-from scenegen.policy.observation import observe
-from scenegen.policy.primitives import PRIMITIVES
-from scenegen.policy.rollout import run_primitive
-from scenegen.policy.task import LIFT_HEIGHT, RetrieveMonitor
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.rollout import run_primitive
+from scenegen.manipulation.task import LIFT_HEIGHT, TIME_LIMIT, RetrieveMonitor
+from scenegen.perception.observation import observe
 from scenegen.schema.scene import FurniturePlacement, Light, Lighting
 
 LIGHT = Lighting(lights=(Light(position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), intensity=0.8),))
@@ -71,6 +71,41 @@ def test_each_grasp_lifts_a_bottle_standing_alone(env, name):
     assert outcome.success and outcome.lift >= LIFT_HEIGHT and outcome.robot_touched, (outcome, params)
 
 
+def test_a_hold_that_completes_after_the_episodes_time_limit_is_not_a_success(env):
+    """A later attempt counts time from the episode's start: the same top grasp that lifts the bottle
+    from a fresh start fails when the episode began TIME_LIMIT - 2 s ago (the grasp takes longer)."""
+    env.reset_to(bottle_alone())
+    now, settled_z = float(env.sim.data._data.time), float(env.target_pose()[0][2])
+    outcome, _ = run_primitive(env, "top_grasp", episode=(now - (TIME_LIMIT - 2.0), settled_z))
+    assert outcome.lift >= LIFT_HEIGHT and outcome.time > TIME_LIMIT  # lifted and held, too late
+    assert not outcome.success and outcome.success_time is None and outcome.failure() == "slip"
+    env.reset_to(bottle_alone())
+    outcome, _ = run_primitive(env, "top_grasp", episode=(now, settled_z))
+    assert outcome.success and outcome.success_time <= TIME_LIMIT
+
+
+def test_touching_another_object_is_measured(env):
+    """The monitor says when the robot touches an object other than the target (the failure
+    labeller's perception rule reads it): the closed hand pressed down on a can, the bottle the target."""
+    from scenegen.manipulation.motion import CLOSE, down_grasp, servo
+
+    bottle = place(catalog(), "bottle", "bottle", 0.05, -0.2)
+    can = place(catalog(), "can", "soda_can", 0.05, 0.15)
+    env.reset_to(proposal_scene(proposal([bottle, can], lighting=LIGHT), "bottle_and_can"))
+    monitor = RetrieveMonitor(env)
+
+    def step(action):
+        env.step(action)
+        monitor.update()
+
+    top = float(env.sim.data._data.xpos[env.sim.model._model.body("can").id][2]) + 0.05
+    rotation = down_grasp(np.array([1.0, 0.0]))
+    servo(env, [0.05, 0.15, top + 0.1], rotation, CLOSE, max_steps=100, step=step)
+    assert not monitor.outcome.other_touched
+    servo(env, [0.05, 0.15, top - 0.03], rotation, CLOSE, max_steps=60, speed=0.3, step=step)
+    assert monitor.outcome.other_touched and not monitor.outcome.robot_touched
+
+
 @pytest.mark.parametrize("under_the_board", [False, True])
 def test_a_top_grasp_lifts_a_can_in_the_open_and_fails_under_the_shelfs_board(env, under_the_board):
     # under the near half of the board (x 0.11-0.24 around y 0.27), where the targeted proposer puts
@@ -115,7 +150,7 @@ def test_a_can_at_the_tables_edge_is_pushed_inward_then_lifted(env):
 
 def test_the_state_ablation_sees_the_whole_target_and_is_never_mixed_with_rgbd(env):
     from scenegen.env.episodes import EpisodeRecorder
-    from scenegen.policy.observation import observe_state
+    from scenegen.perception.observation import observe_state
 
     env.reset_to(bottle_alone())
     obs, view = observe_state(env)

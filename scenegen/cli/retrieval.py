@@ -1,0 +1,166 @@
+"""Retrieval head commands: `retrieval train` (a category-conditioned target localiser trained on
+scene sources mixed by the seed's recipe) and `retrieval eval` (its offline metrics per tag)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from scenegen.cli.common import fail, first_line
+
+DEFAULT_CACHE = Path("runs/cache/frames")
+
+
+def add_commands(sub) -> None:
+    ret = sub.add_parser(
+        "retrieval",
+        help="train the retrieval head (RGB-D + category -> the target's pixels); measure it offline",
+        description="The retrieval head finds the object of a requested category in the planner's "
+        "RGB-D frames (front and side, 320x240), so the closed loop needs no simulator mask. Frames "
+        "are rendered once per scene and cached by content (--cache).",
+    )
+    cmds = ret.add_subparsers(dest="retrieval_command", metavar="COMMAND", required=True)
+    tr = cmds.add_parser(
+        "train",
+        help="train a retrieval head on scene sources (safetensors checkpoint)",
+        description="Each --data source is a batch directory or a reference table; its first --limit "
+        "feasible scenes are rendered (cached) and their segmentation gives the labels: every object's "
+        "pixels under its category. Batches of scenes are drawn by the seed's mixture: real and "
+        "reference sources weight 1, generated batches --alpha. Resumable: rerun the same command after "
+        "an interruption.",
+    )
+    tr.add_argument(
+        "--data", type=Path, nargs="+", required=True, help="batch directories or reference tables"
+    )
+    tr.add_argument("--out", type=Path, required=True, help="checkpoint folder")
+    tr.add_argument("--limit", type=int, default=1000, help="scenes per source (default 1000)")
+    tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
+    tr.add_argument("--alpha", type=float, default=1.0, help="weight of the synthetic sources (default 1)")
+    tr.add_argument("--steps", type=int, default=1500)
+    tr.add_argument("--batch-size", type=int, default=8, help="scenes per step, each with both cameras")
+    tr.add_argument("--width", type=int, default=8, help="channels of the first level (default 8)")
+    tr.add_argument("--seed", type=int, default=0)
+    _common(tr)
+    tr.set_defaults(run=retrieval_train)
+
+    ev = cmds.add_parser(
+        "eval",
+        help="per-tag IoU, hit, wrong-object, miss and false-alarm rates of a retrieval head",
+        description="Predicts the target of each scene in both cameras and scores it against the "
+        "simulator's segmentation: IoU with the true target mask, hit (the predicted region's centre "
+        "on the target), wrong object (most of it on another object), miss (nothing predicted where "
+        "the target is visible). Writes images.jsonl, summary.json and summary.md under --out.",
+    )
+    ev.add_argument("--checkpoint", type=Path, required=True)
+    ev.add_argument("--scenes", type=Path, required=True, help="batch directory or reference table")
+    ev.add_argument("--split", default="heldout", help="a table's split (default heldout)")
+    ev.add_argument("--limit", type=int, help="only the first N selected scenes")
+    ev.add_argument(
+        "--select", choices=("all", "nominal", "rare"), default="all", help="which scenes (default all)"
+    )
+    ev.add_argument(
+        "--unique-category",
+        action="store_true",
+        help="only scenes holding one object of the target's category",
+    )
+    ev.add_argument("--out", type=Path, required=True, help="folder for the metrics")
+    _common(ev)
+    ev.set_defaults(run=retrieval_eval)
+
+
+def _common(parser) -> None:
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=DEFAULT_CACHE,
+        help=f"rendered frames, by content (default {DEFAULT_CACHE})",
+    )
+    parser.add_argument("--workers", type=int, default=1, help="rendering processes (default 1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _scenes(source: Path, split: str, limit: int | None):
+    from scenegen.env.scenes import load_scenes
+    from scenegen.manipulation.task import feasible
+
+    scenes = [s for s in load_scenes(source, None if split == "all" else split) if feasible(s)]
+    return scenes[:limit] if limit is not None else scenes
+
+
+def retrieval_train(args: argparse.Namespace) -> int:
+    import torch
+
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.core.files import sha256_file
+    from scenegen.perception.retrieval.frames import scene_frames
+    from scenegen.perception.retrieval.train import retrieval_data, train_head
+
+    if min(args.steps, args.batch_size, args.limit, args.workers) < 1 or args.alpha < 0:
+        return fail("--steps, --batch-size, --limit and --workers must be at least 1, --alpha at least 0")
+    if not 2 <= args.width <= 64:
+        return fail("--width must lie between 2 and 64")
+    try:
+        scenes = [s for source in args.data for s in _scenes(source, args.split, args.limit)]
+    except (OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    if not scenes:
+        return fail(f"--data {' '.join(map(str, args.data))}: no feasible scene in split {args.split}")
+    torch.set_num_threads(1)  # the budget is CPU seconds: one thread wastes none (and fixes the bytes)
+    frames = scene_frames(scenes, args.cache, args.workers, progress=not args.quiet)
+    data = retrieval_data(scenes, frames, list(load_catalog().categories))
+    described = {
+        "sources": [
+            {"path": str(p), **({"sha256": sha256_file(p)} if p.is_file() else {})} for p in args.data
+        ],
+        "split": args.split,
+        "limit": args.limit,
+    }
+    summary = train_head(
+        data,
+        args.out,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        alpha=args.alpha,
+        seed=args.seed,
+        width=args.width,
+        description=described,
+        progress=not args.quiet,
+    )
+    first, last = summary["losses"][:20], summary["losses"][-20:]
+    print(
+        f"{summary['scenes']} scenes ({summary['images']} images), {args.steps} steps: loss "
+        f"{sum(first) / len(first):.4f} -> {sum(last) / len(last):.4f} ({summary['cpu_seconds']} CPU-s) "
+        f"-> {args.out}"
+    )
+    return 0
+
+
+def retrieval_eval(args: argparse.Namespace) -> int:
+    from scenegen.core.files import CheckpointError
+    from scenegen.env.scenes import unique_category
+    from scenegen.perception.retrieval.evaluate import evaluate_head, summary_table
+    from scenegen.perception.retrieval.frames import scene_frames
+    from scenegen.perception.retrieval.model import RetrievalHead
+
+    if args.workers < 1 or (args.limit is not None and args.limit < 1):
+        return fail("--workers and --limit must be at least 1")
+    try:
+        RetrievalHead.load(args.checkpoint)
+        scenes = _scenes(args.scenes, args.split, None)
+    except (CheckpointError, OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    if args.select != "all":
+        scenes = [s for s in scenes if bool(s.tags.get("nominal")) == (args.select == "nominal")]
+    if args.unique_category:
+        scenes = [s for s in scenes if unique_category(s)]
+    scenes = scenes[: args.limit] if args.limit is not None else scenes
+    if not scenes:
+        return fail(f"--scenes {args.scenes}: no scene left after the selection")
+    frames = list(scene_frames(scenes, args.cache, args.workers, progress=not args.quiet))
+    try:
+        summary = evaluate_head(args.checkpoint, scenes, frames, args.out)
+    except ValueError as exc:  # a category the head does not know
+        return fail(first_line(exc))
+    print(summary_table(summary), end="")
+    print(f"-> {args.out}")
+    return 0
