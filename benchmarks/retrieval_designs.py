@@ -55,14 +55,16 @@ def main() -> None:
     categories = list(load_catalog().categories)
 
     results = {}
-    started = time.process_time()
-    data = retrieval_data(train, scene_frames(train, args.cache), categories)
-    load_cpu = time.process_time() - started
-    summary = train_head(data, args.out / "segmenter", steps=args.steps, progress=True)
-    predictors = {"a_segmenter": head_predictor(RetrievalHead.load(args.out / "segmenter"))}
+    if args.segmenter is None:
+        args.segmenter = args.out / "segmenter"
+        data = retrieval_data(train, scene_frames(train, args.cache), categories)
+        train_head(data, args.segmenter, steps=args.steps, progress=True)
+        del data
+    head = RetrievalHead.load(args.segmenter)
+    predictors = {"a_segmenter": head_predictor(head)}
     results["a_segmenter"] = {
-        "train_cpu_seconds": summary["cpu_seconds"],
-        "load_cpu_seconds": round(load_cpu, 1),
+        "checkpoint": str(args.segmenter),
+        "train_cpu_seconds": head.trained_on["cpu_seconds"],
     }
     summary = train_classifier(train, scene_frames(train, args.cache), categories, args.out / "candidates")
     predictors["b_candidates"] = CandidatePicker(args.out / "candidates").predict

@@ -36,9 +36,22 @@ def add_commands(sub) -> None:
     tr.add_argument("--limit", type=int, default=1000, help="scenes per source (default 1000)")
     tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
     tr.add_argument("--alpha", type=float, default=1.0, help="weight of the synthetic sources (default 1)")
-    tr.add_argument("--steps", type=int, default=1500)
-    tr.add_argument("--batch-size", type=int, default=8, help="scenes per step, each with both cameras")
-    tr.add_argument("--width", type=int, default=8, help="channels of the first level (default 8)")
+    tr.add_argument(
+        "--design",
+        choices=("candidates", "segmenter"),
+        default="candidates",
+        help="candidates (default): depth regions named by a crop classifier; segmenter: a U-Net with "
+        "a plane per category (docs/retrieval.md measures both)",
+    )
+    tr.add_argument(
+        "--steps",
+        type=int,
+        help="training steps (default: candidates 6000 batches of 64 crops, segmenter 2000)",
+    )
+    tr.add_argument(
+        "--batch-size", type=int, default=8, help="segmenter: scenes per step, each with both cameras"
+    )
+    tr.add_argument("--width", type=int, default=8, help="segmenter: channels of the first level (default 8)")
     tr.add_argument("--seed", type=int, default=0)
     _common(tr)
     tr.set_defaults(run=retrieval_train)
@@ -95,6 +108,8 @@ def retrieval_train(args: argparse.Namespace) -> int:
     from scenegen.perception.retrieval.frames import scene_frames
     from scenegen.perception.retrieval.train import retrieval_data, train_head
 
+    if args.steps is None:
+        args.steps = 6000 if args.design == "candidates" else 2000
     if min(args.steps, args.batch_size, args.limit, args.workers) < 1 or args.alpha < 0:
         return fail("--steps, --batch-size, --limit and --workers must be at least 1, --alpha at least 0")
     if not 2 <= args.width <= 64:
@@ -107,7 +122,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
         return fail(f"--data {' '.join(map(str, args.data))}: no feasible scene in split {args.split}")
     torch.set_num_threads(1)  # the budget is CPU seconds: one thread wastes none (and fixes the bytes)
     frames = scene_frames(scenes, args.cache, args.workers, progress=not args.quiet)
-    data = retrieval_data(scenes, frames, list(load_catalog().categories))
+    categories = list(load_catalog().categories)
     described = {
         "sources": [
             {"path": str(p), **({"sha256": sha256_file(p)} if p.is_file() else {})} for p in args.data
@@ -115,8 +130,27 @@ def retrieval_train(args: argparse.Namespace) -> int:
         "split": args.split,
         "limit": args.limit,
     }
+    if args.design == "candidates":
+        from scenegen.perception.retrieval.candidates import train_classifier
+
+        summary = train_classifier(
+            scenes,
+            frames,
+            categories,
+            args.out,
+            args.steps,
+            args.seed,
+            alpha=args.alpha,
+            description=described,
+        )
+        print(
+            f"{summary['scenes']} scenes ({summary['candidates']} candidates), {args.steps} steps: loss "
+            f"{_mean(summary['losses'][:20]):.4f} -> {_mean(summary['losses'][-20:]):.4f} "
+            f"({summary['cpu_seconds']} CPU-s) -> {args.out}"
+        )
+        return 0
     summary = train_head(
-        data,
+        retrieval_data(scenes, frames, categories),
         args.out,
         steps=args.steps,
         batch_size=args.batch_size,
@@ -126,13 +160,16 @@ def retrieval_train(args: argparse.Namespace) -> int:
         description=described,
         progress=not args.quiet,
     )
-    first, last = summary["losses"][:20], summary["losses"][-20:]
     print(
         f"{summary['scenes']} scenes ({summary['images']} images), {args.steps} steps: loss "
-        f"{sum(first) / len(first):.4f} -> {sum(last) / len(last):.4f} ({summary['cpu_seconds']} CPU-s) "
-        f"-> {args.out}"
+        f"{_mean(summary['losses'][:20]):.4f} -> {_mean(summary['losses'][-20:]):.4f} "
+        f"({summary['cpu_seconds']} CPU-s) -> {args.out}"
     )
     return 0
+
+
+def _mean(values) -> float:
+    return sum(values) / max(len(values), 1)
 
 
 def retrieval_eval(args: argparse.Namespace) -> int:
@@ -140,12 +177,12 @@ def retrieval_eval(args: argparse.Namespace) -> int:
     from scenegen.env.scenes import unique_category
     from scenegen.perception.retrieval.evaluate import evaluate_head, summary_table
     from scenegen.perception.retrieval.frames import scene_frames
-    from scenegen.perception.retrieval.model import RetrievalHead
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
 
     if args.workers < 1 or (args.limit is not None and args.limit < 1):
         return fail("--workers and --limit must be at least 1")
     try:
-        RetrievalHead.load(args.checkpoint)
+        RetrievalPerception.load(args.checkpoint)
         scenes = _scenes(args.scenes, args.split, None)
     except (CheckpointError, OSError, ValueError) as exc:
         return fail(first_line(exc))

@@ -45,7 +45,8 @@ KINDS = ("rgbd", "state")
 
 def observe(env, perception=None) -> tuple[dict, TargetView | None]:
     """The camera observation now and what a planner sees in it (None: the target is not seen).
-    ``perception``: a learned target finder (``target_masks(obs, cameras, category)``), or None for
+    ``perception``: a learned target finder (``target_masks(obs, cameras, category, scene)``; the
+    scene gives only the cameras' poses and intrinsics, which a robot knows), or None for
     the oracle's instance masks. With one, the observation holds no segmentation: per camera the
     image, depth, the robot's own pixels (``<cam>_robot_mask``) and the predicted target
     (``<cam>_predicted_target``)."""
@@ -80,7 +81,7 @@ def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
     obs = {f"{name}_{kind}": frames[f"{name}_{kind}"] for name in env.cameras for kind in kept}
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
-    masks = perception.target_masks(obs, env.cameras, target_category(scene))
+    masks = perception.target_masks(obs, env.cameras, target_category(scene), scene)
     target, others = [], []
     for name in env.cameras:
         depth, robot = obs[f"{name}_depth"], np.squeeze(obs[f"{name}_robot_mask"], -1)

@@ -6,8 +6,8 @@ Candidates, as unseen-object segmentation does it: the depth pixels whose world 
 table (``ABOVE_TABLE``) within its edges, that are not the robot's own pixels, split into regions
 where neighbouring depths jump by more than ``EDGE`` (connected components of what is left). Each
 region of at least ``MIN_PIXELS`` is a candidate. The classifier sees a candidate's RGB-D crop (its
-box with a margin, resized to ``CROP`` px) and its mask, and gives logits over "no object" (furniture,
-a merged blob) and the categories; the target is the candidate with the highest probability of the
+long axis turned along the crop's width, ``CROP`` px) and its mask, and gives logits over "no object"
+(furniture, a merged blob) and the categories; the target is the candidate with the highest probability of the
 requested category above the threshold. Labels are the majority instance under each region.
 """
 
@@ -24,13 +24,13 @@ from torch import nn
 from torch.nn import functional as F
 
 from scenegen.perception.points import masked_points
-from scenegen.perception.retrieval.perceive import Prediction
+from scenegen.perception.retrieval.model import Prediction
 
 EDGE = 0.04  # m: a jump in depth between neighbouring pixels that separates two regions (measured: 1 cm cut
 # the sides of objects seen at a grazing angle into pieces; docs/retrieval.md)
 MIN_PIXELS = 20  # a smaller region is no candidate (as the planner's MIN_POINTS)
 CROP = 32  # px: the classifier's input size
-MARGIN = 0.2  # of the region's box, added around it for the crop
+FILL = 0.8  # of the crop's width the region's long axis fills
 TABLE_TOP, TABLE_HALF, TABLE_MARGIN = 0.8, (0.4, 0.5), 0.05
 ABOVE_TABLE = 0.0015  # m: a fork lies 3 mm high; simulated depth is exact (a real sensor needs more)
 
@@ -59,23 +59,31 @@ def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera) -> list
 
 
 def candidate_crop(rgb: np.ndarray, depth: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """(5, CROP, CROP) float32: RGB in [0, 1], depth relative to the region's median (per 10 cm),
-    the region's mask, over the region's box with a margin."""
+    """(5, CROP, CROP) float32 of one region: RGB in [0, 1], depth relative to the region's median
+    (per 10 cm, clipped to [-1, 1]) and the region's mask, turned so the region's long axis lies
+    along the crop's width and scaled so it fills ``FILL`` of it (a fork and a spoon at any angle
+    and distance look alike to the classifier but for their shapes)."""
     import cv2
 
     rows, cols = np.nonzero(region)
-    top, bottom, left, right = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-    dy, dx = int((bottom - top) * MARGIN) + 2, int((right - left) * MARGIN) + 2
-    top, left = max(0, top - dy), max(0, left - dx)
-    bottom, right = min(region.shape[0], bottom + dy), min(region.shape[1], right + dx)
-    window = (slice(top, bottom), slice(left, right))
+    centre = np.array([cols.mean(), rows.mean()])
+    spread = np.stack([cols - centre[0], rows - centre[1]])
+    values, vectors = np.linalg.eigh(np.cov(spread) + 1e-6 * np.eye(2))
+    major = vectors[:, np.argmax(values)]
+    length = max(float(np.ptp(spread.T @ major)) + 2.0, 4.0)
+    turn = cv2.getRotationMatrix2D(
+        (float(centre[0]), float(centre[1])),
+        float(np.degrees(np.arctan2(major[1], major[0]))),
+        FILL * CROP / length,
+    )
+    turn[:, 2] += CROP / 2 - centre
     median = float(np.median(depth[region]))
     channels = [
-        *(rgb[window][..., c].astype(np.float32) / 255.0 for c in range(3)),
-        np.clip((depth[window] - median) / 0.1, -1, 1).astype(np.float32),
-        region[window].astype(np.float32),
+        *(rgb[..., c].astype(np.float32) / 255.0 for c in range(3)),
+        np.clip((depth - median) / 0.1, -1, 1).astype(np.float32),
+        region.astype(np.float32),
     ]
-    return np.stack([cv2.resize(c, (CROP, CROP), interpolation=cv2.INTER_AREA) for c in channels])
+    return np.stack([cv2.warpAffine(c, turn, (CROP, CROP), flags=cv2.INTER_LINEAR) for c in channels])
 
 
 class CandidateClassifier(nn.Module):
@@ -102,14 +110,17 @@ class CandidateClassifier(nn.Module):
         return self.head(self.features(x))
 
 
-def frame_candidates(frames, scene) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(camera index, region mask, crop) of every candidate of a scene's frames (the robot's own
-    pixels from the renderer's robot instance, as the environment's self-filter gives them)."""
+def frame_candidates(
+    frames, scene, robot: np.ndarray | None = None
+) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(camera index, region mask, crop) of every candidate of a scene's frames. ``robot`` (K, H,
+    W): the robot's own pixels, as the environment's self-filter gives them at decision time; by
+    default the renderer's robot instance in the frames' segmentation (training, offline scoring)."""
     cameras = {c.name: c for c in scene.cameras}
     out = []
     for k, name in enumerate(frames.cameras):
-        robot = frames.seg[k] == scene.segmentation["robot"]
-        for region in candidate_regions(frames.depth[k], robot, cameras[name]):
+        mine = robot[k] if robot is not None else frames.seg[k] == scene.segmentation["robot"]
+        for region in candidate_regions(frames.depth[k], mine, cameras[name]):
             out.append((k, region, candidate_crop(frames.rgb[k], frames.depth[k], region)))
     return out
 
@@ -124,29 +135,60 @@ def region_label(region: np.ndarray, seg: np.ndarray, scene, categories: Sequenc
 
 
 def train_classifier(
-    scenes, frames, categories: Sequence[str], out: Path, epochs: int = 12, seed: int = 0, lr: float = 3e-3
+    scenes,
+    frames,
+    categories: Sequence[str],
+    out: Path,
+    steps: int = 6000,
+    seed: int = 0,
+    lr: float = 3e-3,
+    alpha: float = 1.0,
+    description: dict | None = None,
+    progress: bool = False,
 ) -> dict:
-    """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames; save it."""
+    """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames; save it.
+    Batches of 64 are balanced over the labels (a fork is rarer than a box); within a label a
+    candidate is drawn by its scene's weight in the seed's mixture (generated sources weighted
+    ``alpha``, as the segmenter's and the policy's training draw scenes); each crop is flipped along
+    either axis at random and its colours scaled (dim scenes are a rare case)."""
+    from tqdm import tqdm
+
+    from scenegen.env.mixture import scene_weights
+    from scenegen.perception.retrieval.train import default_recipe
+
     torch.manual_seed(seed)
     started = time.process_time()
-    crops, labels = [], []
-    for scene, f in zip(scenes, frames, strict=True):
+    recipe = default_recipe(scenes, alpha)
+    weights = scene_weights(recipe, scenes)
+    crops, labels, scene_of = [], [], []
+    bar = tqdm(zip(scenes, frames, strict=True), total=len(scenes), desc="candidates", disable=not progress)
+    for i, (scene, f) in enumerate(bar):
         for k, region, crop in frame_candidates(f, scene):
             crops.append(crop)
             labels.append(region_label(region, f.seg[k], scene, categories))
+            scene_of.append(i)
     x, y = torch.from_numpy(np.stack(crops)), torch.tensor(labels)
     candidates_cpu = time.process_time() - started
     model = CandidateClassifier(list(categories))
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     rng = np.random.default_rng(seed)
-    steps, losses = epochs * (len(x) // 64 + 1), []
-    for step in range(steps):
+    members = [np.nonzero(y.numpy() == c)[0] for c in range(1 + len(categories))]
+    members = [m for m in members if weights[np.asarray(scene_of)[m]].sum() > 0]
+    draw = [weights[np.asarray(scene_of)[m]] / weights[np.asarray(scene_of)[m]].sum() for m in members]
+    losses = []
+    for step in tqdm(range(steps), desc="training", disable=not progress):
         for group in optimiser.param_groups:
             group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * step / steps))
-        index = torch.from_numpy(rng.integers(len(x), size=64))
-        batch = x[index]
-        flip = torch.from_numpy(rng.random(64) < 0.5)
-        batch[flip] = batch[flip].flip(-1)
+        index = torch.from_numpy(
+            np.array([rng.choice(members[c], p=draw[c]) for c in rng.integers(len(members), size=64)])
+        )
+        batch = x[index].clone()
+        for axis in (-1, -2):
+            flip = torch.from_numpy(rng.random(64) < 0.5)
+            batch[flip] = batch[flip].flip(axis)
+        batch[:, :3] = (
+            batch[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (64, 1, 1, 1)).astype(np.float32))
+        ).clamp(0, 1)
         loss = F.cross_entropy(model(batch), y[index])
         optimiser.zero_grad()
         loss.backward()
@@ -159,6 +201,10 @@ def train_classifier(
         "losses": losses,
         "candidate_cpu_seconds": round(candidates_cpu, 1),
         "cpu_seconds": round(time.process_time() - started, 1),
+        "seed": seed,
+        "scenes": len(scenes),
+        "effective_shares": recipe.effective_shares(),
+        "data": description or {},
     }
     from safetensors.torch import save_file
 
@@ -183,9 +229,9 @@ class CandidatePicker:
         self.model.load_state_dict(load_file(str(Path(folder) / "model.safetensors")))
         self.model.eval()
 
-    def predict(self, frames, scene, category: str) -> list[Prediction]:
-        """The predicted target region per camera of ``frames``."""
-        candidates = frame_candidates(frames, scene)
+    def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:
+        """The predicted target region per camera of ``frames`` (``robot``: see frame_candidates)."""
+        candidates = frame_candidates(frames, scene, robot)
         empty = np.zeros(frames.depth.shape[1:], bool)
         predictions = [Prediction(empty, 0.0) for _ in frames.cameras]
         if not candidates:

@@ -22,8 +22,8 @@ import numpy as np
 
 from scenegen.env.scenes import EnvScene, target_category
 from scenegen.perception.retrieval.frames import Frames
-from scenegen.perception.retrieval.model import RetrievalHead
-from scenegen.perception.retrieval.perceive import Prediction, predict_target
+from scenegen.perception.retrieval.model import Prediction, RetrievalHead
+from scenegen.perception.retrieval.perceive import predict_target
 
 MIN_VISIBLE = 20  # pixels of the true target for it to count as visible in a camera (as MIN_POINTS)
 
@@ -129,9 +129,11 @@ def summarise(rows: Sequence[dict]) -> dict:
 def evaluate_head(
     checkpoint: Path, scenes: Sequence[EnvScene], frames: Sequence[Frames], out: Path | None = None
 ) -> dict:
-    """Metrics of the head at ``checkpoint`` on ``scenes``; with ``out``: ``images.jsonl`` (one row
-    per scene, every camera), ``summary.json`` and ``summary.md`` there."""
-    predict = head_predictor(RetrievalHead.load(checkpoint))
+    """Metrics of the head at ``checkpoint`` (either design) on ``scenes``; with ``out``:
+    ``images.jsonl`` (one row per scene, every camera), ``summary.json`` and ``summary.md`` there."""
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+    predict = RetrievalPerception.load(checkpoint).predict
     rows = [scene_metrics(predict, s, f) for s, f in zip(scenes, frames, strict=True)]
     summary = {"checkpoint": str(checkpoint), **summarise(rows)}
     if out is not None:

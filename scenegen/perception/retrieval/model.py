@@ -12,6 +12,7 @@ at 320 x 240) keeps its pixels. Checkpoints are safetensors plus a JSON config.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,20 @@ from torch import nn
 from torch.nn import functional as F
 
 DEPTH_SCALE = 2.0  # m: depth / 2 lies in [0, 1] for the table-top cameras
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """One camera's predicted target: ``mask`` (H, W) bool (empty: the category is nowhere the
+    most likely class),
+    ``score`` its summed probability."""
+
+    mask: np.ndarray
+    score: float
+
+    @property
+    def empty(self) -> bool:
+        return not self.mask.any()
 
 
 def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:

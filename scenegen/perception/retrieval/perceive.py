@@ -9,26 +9,12 @@ target (a scene may hold a second object of the category: the planner wants one 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from scenegen.perception.retrieval.model import RetrievalHead, head_input
-
-
-@dataclass(frozen=True)
-class Prediction:
-    """One camera's predicted target: ``mask`` (H, W) bool (empty: the category is nowhere the
-    most likely class),
-    ``score`` its summed probability."""
-
-    mask: np.ndarray
-    score: float
-
-    @property
-    def empty(self) -> bool:
-        return not self.mask.any()
+from scenegen.perception.retrieval.frames import Frames
+from scenegen.perception.retrieval.model import Prediction, RetrievalHead, head_input
 
 
 def predict_target(
@@ -64,20 +50,35 @@ def predict_target(
 
 class RetrievalPerception:
     """What :func:`~scenegen.perception.observation.observe` asks of a learned perception: the
-    target's mask in each camera's frame of an observation (``<cam>_image``, ``<cam>_depth``),
-    given the requested category. ``name`` says which head (its checkpoint folder)."""
+    target's mask in each camera's frame of an observation (``<cam>_image``, ``<cam>_depth``,
+    ``<cam>_robot_mask``), given the requested category; either design (a segmenter, or depth
+    candidates with a classifier: docs/retrieval.md). ``name`` says which checkpoint."""
 
-    def __init__(self, head: RetrievalHead, name: str = "retrieval"):
-        self.head = head
+    def __init__(self, predict, name: str = "retrieval"):
+        self.predict = predict  # (frames, scene, category, robot masks) -> a Prediction per camera
         self.name = name
 
     @classmethod
     def load(cls, checkpoint) -> RetrievalPerception:
-        return cls(RetrievalHead.load(checkpoint), str(checkpoint))
+        """The perception of a checkpoint folder of either design (its config.json's ``kind``)."""
+        from scenegen.core.files import read_checkpoint_config
+        from scenegen.perception.retrieval.candidates import CandidatePicker
 
-    def target_masks(self, obs: dict, cameras: Sequence[str], category: str) -> dict[str, np.ndarray]:
+        remedy = "train one with `scenegen retrieval train --out DIR`"
+        kind = read_checkpoint_config(checkpoint, "retrieval head", remedy).get("kind")
+        if kind == "candidate_classifier":
+            return cls(CandidatePicker(checkpoint).predict, str(checkpoint))
+        head = RetrievalHead.load(checkpoint)
+
+        def segmenter(frames, scene, category, robot=None):  # it reads the frames' RGB-D only
+            return predict_target(head, frames.rgb, frames.depth, category)
+
+        return cls(segmenter, str(checkpoint))
+
+    def target_masks(self, obs: dict, cameras: Sequence[str], category: str, scene) -> dict[str, np.ndarray]:
         """(H, W) bool mask of the predicted target per camera."""
         rgb = np.stack([obs[f"{c}_image"] for c in cameras])
         depth = np.stack([np.squeeze(obs[f"{c}_depth"], -1) for c in cameras])
-        predictions = predict_target(self.head, rgb, depth, category)
+        robot = np.stack([np.squeeze(obs[f"{c}_robot_mask"], -1) for c in cameras])
+        predictions = self.predict(Frames(tuple(cameras), rgb, depth, None), scene, category, robot)
         return {c: p.mask for c, p in zip(cameras, predictions, strict=True)}
