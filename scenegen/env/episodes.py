@@ -159,7 +159,10 @@ def write_episode(folder: Path, episode: Episode) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     arrays = {
-        "actions": np.asarray(episode.actions, dtype=np.float32).reshape(episode.length, -1),
+        # an episode may hold no action (a learned perception that never saw the target)
+        "actions": np.asarray(episode.actions, dtype=np.float32).reshape(episode.length, -1)
+        if episode.length
+        else np.zeros((0, 0), np.float32),
         "rewards": np.asarray(episode.rewards, dtype=np.float32),
     }
     arrays |= {f"trace/{k}": np.asarray(v) for k, v in episode.trace.items()}

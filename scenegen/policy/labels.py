@@ -301,3 +301,12 @@ def _execute(jobs: list[Job], workers: int, backend=None) -> Iterator[dict]:
             _close_worker_env()
         return
     yield from ordered_map(_run, jobs, workers, _init_worker, (), backend)
+
+
+def solvable_scenes(label_rows) -> dict[str, bool]:
+    """Per scene sha256 whose every current primitive is labelled: whether one of them succeeds."""
+    rows, _ = current_rows([list(label_rows)])
+    labelled: dict[str, dict[str, bool]] = {}
+    for row in rows:
+        labelled.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    return {sha: any(bits.values()) for sha, bits in labelled.items() if set(bits) >= set(PRIMITIVES)}

@@ -52,6 +52,15 @@ def test_an_episode_round_trips_through_its_folder(episode, tmp_path: Path):
             np.testing.assert_array_equal(theirs.observation[key], value)
 
 
+def test_an_episode_without_an_action_round_trips(episode, tmp_path: Path):
+    """A learned perception that never sees the target acts not at all: the record still writes."""
+    import dataclasses
+
+    idle = dataclasses.replace(episode, actions=[], rewards=[], decisions=episode.decisions[:1])
+    back = read_episode(write_episode(tmp_path / "idle", idle))
+    assert back.length == 0 and len(back.decisions) == 1
+
+
 def test_a_damaged_episode_folder_is_one_clear_error(episode, tmp_path: Path):
     folder = write_episode(tmp_path / "ep", episode)
     (folder / "arrays.npz").write_bytes(b"not a zip")
