@@ -161,3 +161,19 @@ def test_the_committed_label_stores_obey_the_time_limit():
         rows = pq.read_table(store).to_pylist()
         assert rows and all(timed(r) for r in rows), store
         assert max(r["duration"] for r in rows if r["success"]) <= TIME_LIMIT, store
+
+
+def test_a_scene_is_solvable_when_some_current_primitive_succeeds_and_all_are_labelled():
+    from scenegen.manipulation.primitives import PRIMITIVES
+    from scenegen.policy.labels import solvable_scenes
+
+    def row(sha, name, success, version=None):
+        version = PRIMITIVES[name].version if version is None else version
+        return {"scene_sha256": sha, "primitive": name, "primitive_version": version, "success": success,
+                "duration": 10.0, "observation": "rgbd"}  # fmt: skip
+
+    rows = [row("a", p, p == "side_grasp") for p in PRIMITIVES]  # one success
+    rows += [row("b", p, False) for p in PRIMITIVES]  # none
+    rows += [row("c", p, True) for p in list(PRIMITIVES)[:-1]]  # one primitive unlabelled
+    rows += [row("d", p, p == "top_grasp", version=0 if p == "top_grasp" else None) for p in PRIMITIVES]
+    assert solvable_scenes(rows) == {"a": True, "b": False}
