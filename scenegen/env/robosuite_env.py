@@ -224,3 +224,12 @@ def close_at_exit(close) -> None:
 
         GLContext(1, 1).free()
     atexit.register(close)
+
+
+def close_quietly(env) -> None:
+    """Close a worker's environment at exit, where EGL may already be torn down (then nothing is
+    left to free: the process ends anyway)."""
+    try:
+        env.close()
+    except Exception:  # noqa: BLE001 - EGL's own errors at teardown
+        pass

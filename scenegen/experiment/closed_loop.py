@@ -154,10 +154,9 @@ def _init_worker() -> None:
 def _close_env() -> None:
     global _ENV
     if _ENV is not None:
-        try:
-            _ENV.close()
-        except Exception:  # noqa: BLE001 - at exit EGL may already be torn down
-            pass
+        from scenegen.env.robosuite_env import close_quietly
+
+        close_quietly(_ENV)
         _ENV = None
 
 

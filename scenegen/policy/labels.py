@@ -106,10 +106,9 @@ def _run(job: Job) -> dict:
 def _close_worker_env() -> None:
     global _ENV
     if _ENV is not None:
-        try:
-            _ENV.close()
-        except Exception:  # noqa: BLE001 - at exit EGL may already be torn down; the process ends anyway
-            pass
+        from scenegen.env.robosuite_env import close_quietly
+
+        close_quietly(_ENV)
         _ENV = None
 
 
