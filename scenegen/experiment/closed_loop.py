@@ -75,9 +75,22 @@ NOMINAL = Variant()
 SEQUENCE_RULES = 2
 
 
-def path_key(sha: str, prefix: Sequence[str]) -> str:
+def path_key(sha: str, prefix: Sequence[str], seen: str = "oracle") -> str:
+    """A sequence's key: the scene, the rules, what the planners saw (``sight``) and the steps."""
     steps = ",".join(f"{p}@{PRIMITIVES[p].version}" for p in prefix)
-    return f"{sha}|rules{SEQUENCE_RULES}|{steps}"
+    return f"{sha}|rules{SEQUENCE_RULES}|{seen}|{steps}"
+
+
+def sight(retrieval: Path | None, variant: Variant) -> str:
+    """What the planners see through: ``oracle`` (the simulator's masks: lighting cannot change a
+    plan), or a retrieval head (its weights' sha256) under ``variant``'s lighting, which its
+    predictions, hence the plans and the physics, depend on."""
+    if retrieval is None:
+        return "oracle"
+    from scenegen.core.files import sha256_file
+
+    digest = sha256_file(Path(retrieval) / "model.safetensors")[:16]
+    return f"retrieval:{digest}@{variant.name}:{variant.light_scale}"
 
 
 class PathStore:
@@ -88,8 +101,8 @@ class PathStore:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.entries = {row["key"]: row for row in recover_jsonl(self.path)}
 
-    def get(self, sha: str, prefix: Sequence[str]) -> dict | None:
-        return self.entries.get(path_key(sha, prefix))
+    def get(self, sha: str, prefix: Sequence[str], seen: str = "oracle") -> dict | None:
+        return self.entries.get(path_key(sha, prefix, seen))
 
     def add(self, rows: Sequence[dict]) -> None:
         with open(self.path, "a") as sink:
@@ -110,8 +123,8 @@ class ObservationStore:
         self.folder.mkdir(parents=True, exist_ok=True)
 
     @staticmethod
-    def key(sha: str, prefix: Sequence[str], variant: Variant, inputs: str) -> str:
-        text = f"{path_key(sha, prefix)}|{variant.name}:{variant.light_scale}|{inputs}"
+    def key(sha: str, prefix: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
+        text = f"{path_key(sha, prefix, seen)}|{variant.name}:{variant.light_scale}|{inputs}"
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 
     def get(self, key: str) -> np.ndarray | None:
@@ -160,25 +173,56 @@ def _close_env() -> None:
         _ENV = None
 
 
-def simulate(scene: EnvScene, prefix: Sequence[str]) -> list[dict]:
+_PERCEPTIONS: dict[str, object] = {}
+
+
+def _perception(retrieval: Path | None):
+    """This process's loaded retrieval head of ``retrieval`` (None: the oracle)."""
+    if retrieval is None:
+        return None
+    if str(retrieval) not in _PERCEPTIONS:
+        from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+        _PERCEPTIONS[str(retrieval)] = RetrievalPerception.load(retrieval)
+    return _PERCEPTIONS[str(retrieval)]
+
+
+def simulate(
+    scene: EnvScene, prefix: Sequence[str], retrieval: Path | None = None, variant: Variant = NOMINAL
+) -> list[dict]:
     """Run ``prefix`` from ``scene``'s settled state in this process's environment; one store row per
-    step of it (the sequence up to and including that primitive)."""
+    step of it (the sequence up to and including that primitive). ``retrieval``: the head every
+    observation goes through (under ``variant``'s lighting), each decision's prediction scored
+    against the truth for the failure labeller; None: the oracle."""
     from scenegen.env.episodes import EpisodeRecorder
     from scenegen.manipulation.rollout import run_primitive
+    from scenegen.perception.observation import observe as look
 
+    perception = _perception(retrieval)
+    seen = sight(retrieval, variant)
     env = _env(scene)
-    env.reset_to(scene)
+    env.reset_to(variant.apply(scene) if perception is not None else scene)
     data = env.sim.data._data
     start = float(data.time)
     episode = (start, float(env.target_pose()[0][2]))
     recorder = EpisodeRecorder(env, "path", observation_kind="rgbd")
     sha, rows = scene_sha256(scene), []
     for k, name in enumerate(prefix):
-        outcome, _ = run_primitive(env, name, recorder, episode=episode)
+        observed = score = None
+        if perception is not None:
+            from scenegen.perception.retrieval.evaluate import score_observation
+
+            observed = look(env, perception)
+            score = score_observation(env, observed[0])
+        outcome, _ = run_primitive(
+            env, name, recorder, episode=episode, perception=perception, observed=observed
+        )
         features = attempt_features(recorder.snapshot(), scene.target_id, k, outcome.other_touched)
+        if score is not None:
+            features["mask_missed"] = not score["hit"] or score["wrong_object"]
         rows.append(
             {
-                "key": path_key(sha, prefix[: k + 1]),
+                "key": path_key(sha, prefix[: k + 1], seen),
                 "scene_sha256": sha,
                 "prefix": list(prefix[: k + 1]),
                 "success": bool(outcome.success),
@@ -193,9 +237,16 @@ def simulate(scene: EnvScene, prefix: Sequence[str]) -> list[dict]:
     return rows
 
 
-def observe(scene: EnvScene, qpos: Sequence[float] | None, variant: Variant, inputs: str) -> np.ndarray:
-    """The policy input (``rgbd``: the front camera crop; ``state``: the state features) of ``scene``
-    (as ``variant`` shows it) at ``qpos`` (None: the settled state)."""
+def observe(
+    scene: EnvScene,
+    qpos: Sequence[float] | None,
+    variant: Variant,
+    inputs: str,
+    retrieval: Path | None = None,
+) -> np.ndarray:
+    """The policy input (``rgbd``: the front camera crop, its mask the ``retrieval`` head's
+    prediction or the oracle's; ``state``: the state features) of ``scene`` (as ``variant`` shows
+    it) at ``qpos`` (None: the settled state)."""
     import mujoco
 
     from scenegen.perception.observation import state_features
@@ -211,15 +262,20 @@ def observe(scene: EnvScene, qpos: Sequence[float] | None, variant: Variant, inp
         mujoco.mj_forward(model, data)
     if inputs == "state":
         return state_features(env)
+    perception = _perception(retrieval)
+    if perception is not None:
+        from scenegen.perception.observation import observe as look
+
+        return policy_input(look(env, perception)[0])
     return policy_input(env.camera_observations(), scene.target_id)
 
 
 def _job(job: tuple) -> tuple:
     kind, scene, arg = job[0], job[1], job[2]
-    if kind == "simulate":
-        return kind, simulate(scene, arg)
-    qpos, variant, inputs, key = arg
-    return kind, (key, observe(scene, qpos, variant, inputs))
+    if kind == "simulate":  # (prefix, retrieval, variant)
+        return kind, simulate(scene, *arg)
+    qpos, variant, inputs, key, *retrieval = arg
+    return kind, (key, observe(scene, qpos, variant, inputs, *retrieval))
 
 
 class Workers:
@@ -270,15 +326,21 @@ def evaluate_policies(
     variant: Variant = NOMINAL,
     workers: Workers | None = None,
     progress=None,
+    retrieval: Path | None = None,
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
-    policy, scene id, tags, target category, the primitives chosen, success, failure label.
-    ``workers``: an open :class:`Workers` (default: this process)."""
+    policy, scene id, tags, target category, the primitives chosen, success, failure labels.
+    ``workers``: an open :class:`Workers` (default: this process); ``retrieval``: the retrieval
+    head every decision and re-observation sees through (None: the oracle's masks). The expert rows
+    stay the oracle's: they say what the physics allows."""
     import torch
 
     if workers is None:
         with Workers(1) as here:
-            return evaluate_policies(policies, scenes, store, observations, variant, here, progress)
+            return evaluate_policies(
+                policies, scenes, store, observations, variant, here, progress, retrieval
+            )
+    seen = sight(retrieval, variant)
 
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
     for _ in range(ATTEMPTS):
@@ -290,14 +352,14 @@ def evaluate_policies(
         inputs = {r.policy: policies[r.policy].inputs for r in going}
         wanted = {}
         for r in going:
-            entry = store.get(r.sha, r.prefix) if r.prefix else None
+            entry = store.get(r.sha, r.prefix, seen) if r.prefix else None
             if entry is not None and entry["time"] >= TIME_LIMIT:  # the time limit: no new attempt
                 r.done = True
                 continue
-            key = ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy])
+            key = ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy], seen)
             if observations.get(key) is None:
                 qpos = entry["qpos"] if entry else None
-                wanted[key] = ("observe", r.scene, (qpos, variant, inputs[r.policy], key))
+                wanted[key] = ("observe", r.scene, (qpos, variant, inputs[r.policy], key, retrieval))
         for _, (key, value) in workers.map(list(wanted.values())):
             observations.put(key, value)
             progress and progress("observation")
@@ -305,20 +367,24 @@ def evaluate_policies(
         for r in going:
             if r.done:
                 continue
-            x = observations.get(ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy]))
+            x = observations.get(ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy], seen))
             choice = policies[r.policy].choose(torch.from_numpy(x), exclude=set(r.prefix))
             r.prefix = (*r.prefix, choice)
-            if store.get(r.sha, r.prefix) is None:
-                missing[path_key(r.sha, r.prefix)] = ("simulate", r.scene, r.prefix)
+            if store.get(r.sha, r.prefix, seen) is None:
+                missing[path_key(r.sha, r.prefix, seen)] = (
+                    "simulate",
+                    r.scene,
+                    (r.prefix, retrieval, variant),
+                )
         _simulate(store, list(missing.values()), workers, progress)
         for r in going:
             if not r.done:
-                r.success = store.get(r.sha, r.prefix)["success"]
+                r.success = store.get(r.sha, r.prefix, seen)["success"]
                 r.done = r.success
     failed = {r.sha: r.scene for r in runs if not r.success}
     known = sorted({p for policy in policies.values() for p in policy.primitives}, key=list(PRIMITIVES).index)
     experts = expert_rows(store, failed.values(), known, workers, progress)
-    return [_record(r, store, experts, policies[r.policy]) for r in runs]
+    return [_record(r, store, experts, policies[r.policy], seen) for r in runs]
 
 
 def _simulate(store: PathStore, jobs: list[tuple], workers: Workers, progress=None) -> None:
@@ -334,7 +400,7 @@ def expert_rows(
     one-primitive sequences (simulated where missing)."""
     scenes = list(scenes)
     jobs = [
-        ("simulate", s, (name,))
+        ("simulate", s, ((name,), None, NOMINAL))
         for s in scenes
         for name in primitives
         if store.get(scene_sha256(s), (name,)) is None
@@ -346,16 +412,16 @@ def expert_rows(
     }
 
 
-def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
+def _record(run: _Run, store: PathStore, experts: dict, policy, seen: str = "oracle") -> dict:
     scene = run.scene
     tags = [t for t in RARE_TAGS if scene.tags.get(t)]
     category = target_category(scene)
-    entry = store.get(run.sha, run.prefix) if run.prefix else None
+    entry = store.get(run.sha, run.prefix, seen) if run.prefix else None
     causes: list[str] = []
     if not run.success:
         coverage = {(t, c): n for t, c, n in policy.trained_on.get("coverage", [])} or None
         for k, primitive in enumerate(run.prefix):
-            features = store.get(run.sha, run.prefix[: k + 1])["features"]
+            features = store.get(run.sha, run.prefix[: k + 1], seen)["features"]
             first = k == 0
             expert = experts.get(run.sha, ())
             causes.append(

@@ -237,7 +237,9 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
     # what decides the results (the worker count does not: the run's outputs do not depend on it)
-    resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
+    # (nor does an unset retrieval head: a version 1 configuration resolves as it did)
+    ignored = {"workers"} | ({"retrieval"} if config.retrieval is None else set())
+    resolved = yaml.safe_dump(config.model_dump(mode="json", exclude=ignored), sort_keys=False)
     if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
         raise TransferError(
             f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
@@ -294,7 +296,9 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
             target = out / "episodes" / f"{panel}_{variant.name}.jsonl"
             if not target.exists():
                 chosen = {name: policies[name] for name in names}
-                records = _evaluate(chosen, panels[panel], store, observations, variant, workers, progress)
+                records = _evaluate(
+                    chosen, panels[panel], store, observations, variant, workers, progress, config.retrieval
+                )
                 lines = "".join(
                     json.dumps(r | {"panel": panel, "variant": variant.name}, sort_keys=True) + "\n"
                     for r in records
@@ -309,7 +313,9 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     return finish(config, all_runs, panels, sources, timings, len(store.entries))
 
 
-def _evaluate(policies, scenes, store, observations, variant, workers, progress) -> list[dict]:
+def _evaluate(
+    policies, scenes, store, observations, variant, workers, progress, retrieval=None
+) -> list[dict]:
     from tqdm import tqdm
 
     from scenegen.experiment.closed_loop import evaluate_policies
@@ -317,7 +323,7 @@ def _evaluate(policies, scenes, store, observations, variant, workers, progress)
     bar = tqdm(desc=f"evaluation ({variant.name})", unit=" runs", disable=not progress)
     try:
         return evaluate_policies(
-            policies, scenes, store, observations, variant, workers, lambda _: bar.update()
+            policies, scenes, store, observations, variant, workers, lambda _: bar.update(), retrieval
         )
     finally:
         bar.close()

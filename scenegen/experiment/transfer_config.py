@@ -91,6 +91,8 @@ class TransferConfig(_Strict):
         Path("assets/policy/labels/cell_box.parquet"),
     )
     path_store: Path = Path("assets/transfer/paths.jsonl")
+    # the retrieval head the evaluated policies see through (None: the oracle's masks, version 1)
+    retrieval: Path | None = None
     cache: Path = Path("runs/transfer/cache")
     out: Path = Path("assets/transfer/result")
     manifest: Path | None = Path("data_manifest.yaml")
@@ -159,6 +161,14 @@ def check_inputs(config: TransferConfig) -> None:
     for i, path in enumerate(config.reuse_labels):
         if not Path(path).is_file():
             raise TransferConfigError(f"reuse_labels.{i}: {path}: no such label file")
+    if config.retrieval is not None:
+        from scenegen.core.files import CheckpointError
+        from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+        try:
+            RetrievalPerception.load(config.retrieval)
+        except CheckpointError as exc:
+            raise TransferConfigError(f"retrieval: {exc}") from None
     for key in ("recipe", "diffusion"):
         try:
             recipe = load_pipeline(getattr(config.generation, key))

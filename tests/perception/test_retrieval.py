@@ -148,3 +148,14 @@ def test_the_candidate_design_finds_objects_in_depth_and_names_them(scenes, cach
     assert summary["candidates"] > 0 and summary["losses"][-1] < summary["losses"][0]
     predictions = CandidatePicker(tmp_path / "b").predict(frames[0], scenes[0], target_category(scenes[0]))
     assert len(predictions) == 2 and all(p.mask.shape == (240, 320) for p in predictions)
+
+
+def test_a_candidate_checkpoint_whose_weights_do_not_load_is_a_one_line_error(tmp_path: Path):
+    from scenegen.core.files import CheckpointError
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+    root = Path(__file__).resolve().parents[2] / "assets" / "retrieval" / "baseline"
+    (tmp_path / "config.json").write_bytes((root / "config.json").read_bytes())
+    (tmp_path / "model.safetensors").write_bytes(b"not weights")
+    with pytest.raises(CheckpointError, match="model.safetensors: does not load"):
+        RetrievalPerception.load(tmp_path)

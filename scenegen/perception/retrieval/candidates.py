@@ -224,9 +224,21 @@ class CandidatePicker:
     def __init__(self, folder: Path):
         from safetensors.torch import load_file
 
-        config = json.loads((Path(folder) / "config.json").read_text())
-        self.model = CandidateClassifier(config["categories"], config["width"])
-        self.model.load_state_dict(load_file(str(Path(folder) / "model.safetensors")))
+        from scenegen.core.files import CheckpointError, checkpoint_error, read_checkpoint_config
+
+        folder = Path(folder)
+        remedy = "train one with `scenegen retrieval train --out DIR`"
+        config = read_checkpoint_config(folder, "retrieval head", remedy)
+        categories, width = config.get("categories"), config.get("width")
+        if not (isinstance(categories, list) and categories and all(isinstance(c, str) for c in categories)):
+            raise CheckpointError(f"{folder / 'config.json'}: categories: a list of category names expected")
+        if not (isinstance(width, int) and 2 <= width <= 256):
+            raise CheckpointError(f"{folder / 'config.json'}: width: an integer from 2 to 256 expected")
+        self.model = CandidateClassifier(categories, width)
+        try:
+            self.model.load_state_dict(load_file(str(folder / "model.safetensors")))
+        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         self.model.eval()
 
     def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:
