@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from scenegen.cli.common import fail
+from scenegen.cli.common import fail, first_line
 
 STAGES = ("sources", "labels", "training")
 
@@ -53,6 +53,72 @@ def add_commands(sub) -> None:
     )
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(run=transfer)
+    _add_panels(kinds)
+
+
+def _add_panels(kinds) -> None:
+    from scenegen.paths import ASSETS_DIR
+
+    v2 = ASSETS_DIR / "panels" / "v2"  # as scenegen/policy/panels_v2.py names them (checked in its test)
+    LABELS_V2, NEW_LAYOUTS, PANELS_V2_FILE = (
+        v2 / "heldout_labels.parquet",
+        v2 / "reference_seed1.parquet",
+        v2 / "panels.json",
+    )
+    pa = kinds.add_parser(
+        "panels",
+        help="draw the version 2 test and validation panels (unique-category, solvable layouts)",
+        description="Labels, until some primitive succeeds, just the held-out layouts the version 2 panels "
+        "need (the bundled table's held-out split, then the new-seed table; scenegen/policy/panels_v2.py "
+        "says how pools are settled and drawn) and writes panels.json with the per-panel counts. "
+        "Resumable: the label store keeps every row; rerun after a kill.",
+    )
+    pa.add_argument("--labels", type=Path, default=LABELS_V2, help=f"label store (default {LABELS_V2})")
+    pa.add_argument(
+        "--new-layouts", type=Path, default=NEW_LAYOUTS, help=f"the new-seed table ({NEW_LAYOUTS})"
+    )
+    pa.add_argument(
+        "--out", type=Path, default=PANELS_V2_FILE, help=f"panels file (default {PANELS_V2_FILE})"
+    )
+    pa.add_argument("--workers", type=int, default=1, help="labelling processes (default 1)")
+    pa.add_argument(
+        "--no-label", action="store_true", help="draw from the labels the store holds; run nothing"
+    )
+    pa.add_argument("--quiet", action="store_true", help="no progress bars")
+    pa.set_defaults(run=panels)
+
+
+def panels(args: argparse.Namespace) -> int:
+    from scenegen.env.scenes import SceneSourceError
+    from scenegen.policy.labels import LabelError
+    from scenegen.policy.panels_v2 import (
+        REFERENCE,
+        fill_pools,
+        known_solvable,
+        source_layouts,
+        write_panels_v2,
+    )
+
+    if args.workers < 1:
+        return fail("--workers must be at least 1")
+    if not args.new_layouts.is_file():
+        make = f"scenegen reference --n 5000 --seed 1 --out {args.new_layouts}"
+        return fail(f"--new-layouts {args.new_layouts}: no such table; make it with `{make}`")
+    sources = ((REFERENCE, "heldout"), (args.new_layouts, None))
+    try:
+        layouts = source_layouts(sources)
+        if args.no_label:
+            solvable = known_solvable(args.labels)
+        else:
+            solvable = fill_pools(layouts, args.labels, workers=args.workers, progress=not args.quiet)
+    except (SceneSourceError, LabelError, OSError) as exc:
+        return fail(first_line(exc))
+    drawn = write_panels_v2(layouts, solvable, args.out, sources)
+    print(json.dumps(drawn["counts"]))
+    if drawn["short"]:
+        print(f"short (no panel of their own): {', '.join(drawn['short'])}")
+    print(f"-> {args.out}")
+    return 0
 
 
 def transfer(args: argparse.Namespace) -> int:

@@ -48,6 +48,12 @@ def _add_label(sub) -> None:
     lab.add_argument(
         "--unique-category", action="store_true", help="only scenes with one object of the target's category"
     )
+    lab.add_argument(
+        "--until-solved",
+        action="store_true",
+        help="stop each scene at its first success, primitives tried in the cheapest order (or --primitives' "
+        "order): enough to say which scenes some primitive solves (panels), at about half the rows",
+    )
     lab.add_argument("--workers", type=int, default=1, help="processes or Ray actors (default 1)")
     add_backend_arguments(lab)
     lab.add_argument(
@@ -159,6 +165,7 @@ def label(args: argparse.Namespace) -> int:
                 outside_panels=args.outside_panels,
                 backend=backend,
                 unique=args.unique_category,
+                until_solved=args.until_solved,
             )
     except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))

@@ -163,7 +163,7 @@ def test_the_committed_label_stores_obey_the_time_limit():
         assert max(r["duration"] for r in rows if r["success"]) <= TIME_LIMIT, store
 
 
-def test_a_scene_is_solvable_when_some_current_primitive_succeeds_and_all_are_labelled():
+def test_a_scene_is_solvable_once_a_current_primitive_succeeds_and_unsolvable_when_all_fail():
     from scenegen.manipulation.primitives import PRIMITIVES
     from scenegen.policy.labels import solvable_scenes
 
@@ -174,6 +174,50 @@ def test_a_scene_is_solvable_when_some_current_primitive_succeeds_and_all_are_la
 
     rows = [row("a", p, p == "side_grasp") for p in PRIMITIVES]  # one success
     rows += [row("b", p, False) for p in PRIMITIVES]  # none
-    rows += [row("c", p, True) for p in list(PRIMITIVES)[:-1]]  # one primitive unlabelled
+    rows += [row("c", p, True) for p in list(PRIMITIVES)[:1]]  # solved by its first row
     rows += [row("d", p, p == "top_grasp", version=0 if p == "top_grasp" else None) for p in PRIMITIVES]
-    assert solvable_scenes(rows) == {"a": True, "b": False}
+    rows += [row("e", p, False) for p in list(PRIMITIVES)[:-1]]  # one primitive unlabelled: unknown
+    assert solvable_scenes(rows) == {"a": True, "b": False, "c": True}
+
+
+def test_labelling_until_solved_stops_each_scene_at_its_first_success(tmp_path: Path):
+    """``label_until_solved``: a scene solved by the first primitive of the order gets one row, one
+    solved by the second two, an unsolvable one every primitive; the store says which is which."""
+    from collections import defaultdict
+
+    from scenegen.core.files import load_rows
+    from scenegen.env.scenes import reference_scene
+    from scenegen.policy.labels import SOLVE_ORDER, label_until_solved, scene_sha256, solvable_scenes
+
+    committed = Path("assets/policy/labels/per_tag40.parquet")
+    outcome: dict[str, dict[str, bool]] = defaultdict(dict)
+    for r in pq.read_table(committed).to_pylist():
+        outcome[r["scene_sha256"]][r["primitive"]] = r["success"]
+    first, second = SOLVE_ORDER[:2]
+    kinds = {
+        "first": lambda o: o[first],
+        "second": lambda o: not o[first] and o[second],
+        "none": lambda o: not any(o.values()),
+    }
+    chosen: dict[str, object] = {}
+    for row in load_rows(Path("assets/reference/reference.parquet"), "train")[:600]:
+        scene = reference_scene(row)
+        o = outcome.get(scene_sha256(scene))
+        if o is None or len(o) < len(SOLVE_ORDER):
+            continue
+        for kind, test in kinds.items():
+            if kind not in chosen and test(o):
+                chosen[kind] = scene
+    assert set(chosen) == set(kinds)
+    store = tmp_path / "store.parquet"
+    rows, ran = label_until_solved(list(chosen.values()), store, progress=False, reuse=[committed])
+    per_scene = defaultdict(list)
+    for r in rows:
+        per_scene[r["scene_sha256"]].append(r["primitive"])
+    sha = {kind: scene_sha256(scene) for kind, scene in chosen.items()}
+    assert ran == 0
+    assert per_scene[sha["first"]] == [first] and per_scene[sha["second"]] == [first, second]
+    assert per_scene[sha["none"]] == list(SOLVE_ORDER)
+    stored = solvable_scenes(pq.read_table(store).to_pylist())  # the store also keeps the reused rows
+    assert {k: stored[v] for k, v in sha.items()} == {"first": True, "second": True, "none": False}
+    assert solvable_scenes(rows) == {sha["first"]: True, sha["second"]: True, sha["none"]: False}

@@ -28,21 +28,54 @@ def test_version_2_panels_hold_unique_solvable_layouts_and_keep_validation_apart
     """Drawn from the real held-out split with hand-made solvability (every third layout unsolvable):
     unique-category targets only, solvable only, no layout on two panels, the retrieval's tuning set
     only on the validation side, and the same draw for the same seed."""
-    from scenegen.env.scenes import load_scenes, scene_sha256, unique_category
-    from scenegen.policy.panels import RETRIEVAL_VALIDATION, choose_panels_v2
+    from scenegen.env.scenes import scene_sha256
+    from scenegen.policy.panels_v2 import (
+        RETRIEVAL_VALIDATION,
+        TEST_PER_TAG,
+        VALIDATION_PER_TAG,
+        choose_panels_v2,
+        panel_id,
+        source_layouts,
+    )
 
-    scenes = load_scenes(REFERENCE, "heldout")
-    solvable = {scene_sha256(s): i % 3 != 0 for i, s in enumerate(scenes)}
-    panels = choose_panels_v2(scenes, solvable)
-    assert panels == choose_panels_v2(scenes, solvable)
-    by_id = {s.scene_id: s for s in scenes}
+    layouts = source_layouts(((REFERENCE, "heldout"),))
+    solvable = {scene_sha256(s): i % 3 != 0 for i, s in enumerate(layouts)}
+    panels = choose_panels_v2(layouts, solvable)
+    assert panels == choose_panels_v2(layouts, solvable) and panels["counts"]["pending"] == 0
+    by_id = {panel_id(s): s for s in layouts}
     chosen = [i for side in ("test", "validation") for ids in panels[side].values() for i in ids]
     assert len(chosen) == len(set(chosen)) and chosen
-    assert all(unique_category(by_id[i]) and solvable[scene_sha256(by_id[i])] for i in chosen)
-    nominal = [
-        s for s in scenes if unique_category(s) and s.tags.get("nominal") and not s.tags.get("on_floor")
-    ]
-    tuned = {s.scene_id for s in nominal[:RETRIEVAL_VALIDATION]}
-    assert not tuned & {i for ids in panels["test"].values() for i in ids}
-    assert set(panels["validation"]["common"]) <= tuned and len(panels["test"]["common"]) == 100
-    assert panels["counts"]["test"]["under_overhang"] < 25 and "under_overhang" in panels["short"]
+    assert all(solvable[scene_sha256(by_id[i])] for i in chosen)
+    first_nominal = [panel_id(s) for s in layouts if s.tags.get("nominal")][:RETRIEVAL_VALIDATION]
+    assert not set(first_nominal) & {i for ids in panels["test"].values() for i in ids}
+    assert set(panels["validation"]["common"]) <= set(first_nominal) and len(panels["test"]["common"]) == 100
+    assert "under_overhang" in panels["short"] and "under_overhang" not in panels["test"]  # 17 layouts
+    for tag, ids in panels["validation"].items():
+        if tag != "common":
+            assert len(ids) == VALIDATION_PER_TAG and len(panels["test"][tag]) <= TEST_PER_TAG
+            assert all(by_id[i].tags.get(tag) for i in ids + panels["test"][tag])
+
+
+def test_a_pool_waits_for_every_unknown_layout_before_its_end():
+    """Pools are a function of the facts, not of the order of labelling: a layout whose label is not
+    known cuts its pool short there and is asked for; once known, the pool is what full knowledge gives."""
+    from scenegen.env.scenes import scene_sha256
+    from scenegen.policy.panels_v2 import panel_id, panel_pools, source_layouts
+
+    layouts = source_layouts(((REFERENCE, "heldout"),))
+    solvable = {scene_sha256(s): i % 3 != 0 for i, s in enumerate(layouts)}
+    full, wanted = panel_pools(layouts, solvable)
+    assert not wanted
+    hole = full["occluded"][5]
+    partial = {k: v for k, v in solvable.items() if k != scene_sha256(hole)}
+    pools, wanted = panel_pools(layouts, partial)
+    assert [panel_id(s) for s in pools["occluded"]] == [panel_id(s) for s in full["occluded"][:5]]
+    assert panel_id(hole) in {panel_id(s) for s in wanted}
+
+
+def test_the_cli_names_the_files_the_module_names():
+    from scenegen.cli import _parser
+    from scenegen.policy.panels_v2 import LABELS_V2, NEW_LAYOUTS, PANELS_V2_FILE
+
+    args = _parser().parse_args(["experiment", "panels"])
+    assert (args.labels, args.new_layouts, args.out) == (LABELS_V2, NEW_LAYOUTS, PANELS_V2_FILE)
