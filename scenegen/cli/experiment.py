@@ -60,11 +60,7 @@ def _add_panels(kinds) -> None:
     from scenegen.paths import ASSETS_DIR
 
     v2 = ASSETS_DIR / "panels" / "v2"  # as scenegen/policy/panels_v2.py names them (checked in its test)
-    LABELS_V2, NEW_LAYOUTS, PANELS_V2_FILE = (
-        v2 / "heldout_labels.parquet",
-        v2 / "reference_seed1.parquet",
-        v2 / "panels.json",
-    )
+    labels, layouts, out = v2 / "heldout_labels.parquet", v2 / "reference_seed1.parquet", v2 / "panels.json"
     pa = kinds.add_parser(
         "panels",
         help="draw the version 2 test and validation panels (unique-category, solvable layouts)",
@@ -73,19 +69,67 @@ def _add_panels(kinds) -> None:
         "says how pools are settled and drawn) and writes panels.json with the per-panel counts. "
         "Resumable: the label store keeps every row; rerun after a kill.",
     )
-    pa.add_argument("--labels", type=Path, default=LABELS_V2, help=f"label store (default {LABELS_V2})")
-    pa.add_argument(
-        "--new-layouts", type=Path, default=NEW_LAYOUTS, help=f"the new-seed table ({NEW_LAYOUTS})"
-    )
-    pa.add_argument(
-        "--out", type=Path, default=PANELS_V2_FILE, help=f"panels file (default {PANELS_V2_FILE})"
-    )
+    pa.add_argument("--labels", type=Path, default=labels, help=f"label store (default {labels})")
+    pa.add_argument("--new-layouts", type=Path, default=layouts, help=f"the new-seed table ({layouts})")
+    pa.add_argument("--out", type=Path, default=out, help=f"panels file (default {out})")
     pa.add_argument("--workers", type=int, default=1, help="labelling processes (default 1)")
     pa.add_argument(
         "--no-label", action="store_true", help="draw from the labels the store holds; run nothing"
     )
     pa.add_argument("--quiet", action="store_true", help="no progress bars")
     pa.set_defaults(run=panels)
+    _add_perception_gap(kinds, out)
+
+
+def _add_perception_gap(kinds, panels_file: Path) -> None:
+    from scenegen.paths import ASSETS_DIR
+
+    gap = kinds.add_parser(
+        "perception-gap",
+        help="one policy on a version 2 panel through a retrieval head and through the oracle's masks",
+        description="Runs the policy in closed loop on every layout of one side of the version 2 panels, "
+        "first seeing through the retrieval head, then through the simulator's masks (the ceiling), on "
+        "one sequence store keyed by the plans executed. Writes episodes_learned.jsonl, "
+        "episodes_oracle.jsonl, summary.json and summary.md (success per panel with 95%% intervals, the "
+        "gap, perception failures, the store's sharing rate and the CPU per episode). Resumable.",
+    )
+    gap.add_argument("--checkpoint", type=Path, default=ASSETS_DIR / "policy" / "baseline", help="policy")
+    gap.add_argument("--retrieval", type=Path, default=ASSETS_DIR / "retrieval" / "baseline", help="head")
+    gap.add_argument("--panels", type=Path, default=panels_file, help=f"panels file (default {panels_file})")
+    gap.add_argument(
+        "--side",
+        choices=("validation", "test"),
+        default="validation",
+        help="which panels (default validation: the only side a pilot may look at)",
+    )
+    gap.add_argument("--limit", type=int, help="only the first N layouts of each panel (a pilot)")
+    gap.add_argument("--out", type=Path, required=True, help="folder for episodes and the summary")
+    gap.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    gap.add_argument("--quiet", action="store_true", help="no progress bars")
+    gap.set_defaults(run=perception_gap)
+
+
+def perception_gap(args: argparse.Namespace) -> int:
+    from scenegen.core.files import CheckpointError
+    from scenegen.experiment.perception_gap import markdown, run_gap
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+    from scenegen.policy.network import PrimitivePolicy
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
+
+    if args.workers < 1 or (args.limit is not None and args.limit < 1):
+        return fail("--workers and --limit must be at least 1")
+    try:
+        PrimitivePolicy.load(args.checkpoint)
+        RetrievalPerception.load(args.retrieval)
+        panel = panel_scenes(load_panels_v2(args.panels), args.side)
+    except (CheckpointError, OSError, ValueError, KeyError) as exc:
+        return fail(first_line(exc))
+    if args.limit is not None:
+        panel = {name: scenes[: args.limit] for name, scenes in panel.items()}
+    summary = run_gap(args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet)
+    print(markdown(summary), end="")
+    print(f"-> {args.out}")
+    return 0
 
 
 def panels(args: argparse.Namespace) -> int:

@@ -65,8 +65,16 @@ def add_commands(sub) -> None:
         "the target is visible). Writes images.jsonl, summary.json and summary.md under --out.",
     )
     ev.add_argument("--checkpoint", type=Path, required=True)
-    ev.add_argument("--scenes", type=Path, required=True, help="batch directory or reference table")
+    ev.add_argument(
+        "--scenes",
+        type=Path,
+        required=True,
+        help="batch directory, reference table, or a version 2 panels file (assets/panels/v2/panels.json)",
+    )
     ev.add_argument("--split", default="heldout", help="a table's split (default heldout)")
+    ev.add_argument(
+        "--side", choices=("validation", "test"), default="validation", help="a panels file's side"
+    )
     ev.add_argument("--limit", type=int, help="only the first N selected scenes")
     ev.add_argument(
         "--select", choices=("all", "nominal", "rare"), default="all", help="which scenes (default all)"
@@ -183,8 +191,14 @@ def retrieval_eval(args: argparse.Namespace) -> int:
         return fail("--workers and --limit must be at least 1")
     try:
         RetrievalPerception.load(args.checkpoint)
-        scenes = _scenes(args.scenes, args.split, None)
-    except (CheckpointError, OSError, ValueError) as exc:
+        if args.scenes.suffix == ".json":
+            from scenegen.policy.panels_v2 import load_panels_v2, panel_id, panel_scenes
+
+            panel = panel_scenes(load_panels_v2(args.scenes), args.side)
+            scenes = list({panel_id(s): s for ss in panel.values() for s in ss}.values())
+        else:
+            scenes = _scenes(args.scenes, args.split, None)
+    except (CheckpointError, OSError, ValueError, KeyError) as exc:
         return fail(first_line(exc))
     if args.select != "all":
         scenes = [s for s in scenes if bool(s.tags.get("nominal")) == (args.select == "nominal")]

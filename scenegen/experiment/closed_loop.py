@@ -71,20 +71,43 @@ NOMINAL = Variant()
 
 
 # 2: success held to the time limit from the episode's start, features per attempt, other objects
-# touched (version 1, assets/transfer/paths.jsonl: success per attempt, features over the episode)
-SEQUENCE_RULES = 2
+# touched (version 1, assets/transfer/paths.jsonl: success per attempt, features over the episode);
+# 3: keyed by the plans executed (decision and re-observation), not by what the planners saw
+SEQUENCE_RULES = 3
+PLAN_DIGITS = 9  # a plan's numbers in its key: 1e-9 m, far below what the controller resolves
 
 
-def path_key(sha: str, prefix: Sequence[str], seen: str = "oracle") -> str:
-    """A sequence's key: the scene, the rules, what the planners saw (``sight``) and the steps."""
-    steps = ",".join(f"{p}@{PRIMITIVES[p].version}" for p in prefix)
-    return f"{sha}|rules{SEQUENCE_RULES}|{seen}|{steps}"
+def plan_digest(plan: dict | None) -> str:
+    """A plan's parameters as a short digest (``unseen``: no plan, the target was not seen)."""
+    if plan is None:
+        return "unseen"
+
+    def rounded(value):
+        if isinstance(value, (list, tuple, np.ndarray)):
+            return [rounded(v) for v in value]
+        return round(float(value), PLAN_DIGITS) if isinstance(value, (float, np.floating)) else value
+
+    text = json.dumps({k: rounded(v) for k, v in plan.items()}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def decision_token(name: str, plan: dict | None) -> str:
+    """What an attempt executes as decided: the primitive, its version and its plan."""
+    return f"{name}@{PRIMITIVES[name].version}:{plan_digest(plan)}"
+
+
+def path_key(sha: str, tokens: Sequence[str]) -> str:
+    """A sequence's key: the scene, the rules and every attempt's token (its decision, and the plan
+    made at a re-observation inside it, ``+digest``). The physics is a function of the scene and
+    the plans executed, so any two policies, seeing through any heads, that execute the same plans
+    share the outcome exactly."""
+    return f"{sha}|rules{SEQUENCE_RULES}|" + "|".join(tokens)
 
 
 def sight(retrieval: Path | None, variant: Variant) -> str:
     """What the planners see through: ``oracle`` (the simulator's masks: lighting cannot change a
     plan), or a retrieval head (its weights' sha256) under ``variant``'s lighting, which its
-    predictions, hence the plans and the physics, depend on."""
+    predictions, hence the plans, depend on. It keys observations, not sequences."""
     if retrieval is None:
         return "oracle"
     from scenegen.core.files import sha256_file
@@ -94,49 +117,86 @@ def sight(retrieval: Path | None, variant: Variant) -> str:
 
 
 class PathStore:
-    """Measured primitive sequences, appended to a JSONL file (a torn last line is dropped)."""
+    """Measured primitive sequences, appended to a JSONL file (a torn last line is dropped). Rows of
+    earlier rules stay in the file and answer nothing."""
 
     def __init__(self, path: Path):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.entries = {row["key"]: row for row in recover_jsonl(self.path)}
+        self.entries: dict[str, dict] = {}
+        self.decisions: dict[tuple, list[dict]] = {}
+        self.mismatches = 0  # a plan path measured twice with different outcomes (should stay 0)
+        for row in recover_jsonl(self.path):
+            self._index(row)
 
-    def get(self, sha: str, prefix: Sequence[str], seen: str = "oracle") -> dict | None:
-        return self.entries.get(path_key(sha, prefix, seen))
+    def _index(self, row: dict) -> None:
+        self.entries[row["key"]] = row
+        if row.get("rules") == SEQUENCE_RULES:
+            where = (row["scene_sha256"], tuple(row["tokens"][:-1]), row["decision"])
+            self.decisions.setdefault(where, []).append(row)
+
+    def get(self, sha: str, tokens: Sequence[str]) -> dict | None:
+        return self.entries.get(path_key(sha, tokens))
+
+    def candidates(self, sha: str, before: Sequence[str], decision: str) -> list[dict]:
+        """The measured attempts that execute ``decision`` after the attempts ``before``: one, or
+        several that differ in the plan made at the re-observation inside the primitive."""
+        return self.decisions.get((sha, tuple(before), decision), [])
 
     def add(self, rows: Sequence[dict]) -> None:
         with open(self.path, "a") as sink:
             for row in rows:
-                if row["key"] not in self.entries:
-                    sink.write(json.dumps(row, sort_keys=True) + "\n")
-                    self.entries[row["key"]] = row
+                known = self.entries.get(row["key"])
+                if known is not None:
+                    same = (known["success"], known["time"]) == (row["success"], row["time"])
+                    self.mismatches += not same
+                    continue
+                sink.write(json.dumps(row, sort_keys=True) + "\n")
+                self._index(row)
             sink.flush()
             os.fsync(sink.fileno())
 
 
+def match(store: PathStore, sha: str, before: Sequence[str], decision: str, regrasp: str | None):
+    """The stored attempt a policy's decision leads to: the one without a re-observation, or the one
+    whose re-observation plan is ``regrasp`` (the policy's own at the stored re-observation state)."""
+    for row in store.candidates(sha, before, decision):
+        if row["regrasp"] is None or row["regrasp"]["plan"] == regrasp:
+            return row
+    return None
+
+
 class ObservationStore:
-    """Policy inputs at decision points, one ``.npy`` per (sequence, variant, input kind), written
-    atomically."""
+    """Policy inputs at decision points, one ``.npy`` per (state, sight, variant, input kind), and
+    beside it a JSON of what the decision needs besides (each primitive's plan token, the head's
+    score), written atomically."""
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
 
     @staticmethod
-    def key(sha: str, prefix: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
-        text = f"{path_key(sha, prefix, seen)}|{variant.name}:{variant.light_scale}|{inputs}"
+    def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
+        text = f"{path_key(sha, tokens)}|{seen}|{variant.name}:{variant.light_scale}|{inputs}"
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 
     def get(self, key: str) -> np.ndarray | None:
         path = self.folder / f"{key}.npy"
         return np.load(path, allow_pickle=False) if path.exists() else None
 
-    def put(self, key: str, value: np.ndarray) -> None:
+    def meta(self, key: str) -> dict | None:
+        path = self.folder / f"{key}.json"
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def put(self, key: str, value: np.ndarray | None, meta: dict | None = None) -> None:
         import io
 
-        buffer = io.BytesIO()
-        np.save(buffer, value, allow_pickle=False)
-        atomic_write(self.folder / f"{key}.npy", buffer.getvalue())
+        if meta is not None:
+            atomic_write(self.folder / f"{key}.json", json.dumps(meta, sort_keys=True).encode())
+        if value is not None:
+            buffer = io.BytesIO()
+            np.save(buffer, value, allow_pickle=False)
+            atomic_write(self.folder / f"{key}.npy", buffer.getvalue())
 
 
 # ------------------------------------------------------------------------------------------- workers
@@ -187,48 +247,69 @@ def _perception(retrieval: Path | None):
     return _PERCEPTIONS[str(retrieval)]
 
 
+def _state(env, qpos: Sequence[float] | None) -> None:
+    """Put the environment at ``qpos`` (None: leave it at the settled state), at rest."""
+    if qpos is None:
+        return
+    import mujoco
+
+    model, data = env.sim.model._model, env.sim.data._data
+    data.qpos[:] = qpos
+    data.qvel[:] = 0
+    mujoco.mj_forward(model, data)
+
+
 def simulate(
     scene: EnvScene, prefix: Sequence[str], retrieval: Path | None = None, variant: Variant = NOMINAL
 ) -> list[dict]:
-    """Run ``prefix`` from ``scene``'s settled state in this process's environment; one store row per
-    step of it (the sequence up to and including that primitive). ``retrieval``: the head every
-    observation goes through (under ``variant``'s lighting), each decision's prediction scored
-    against the truth for the failure labeller; None: the oracle."""
+    """Run ``prefix`` from ``scene``'s settled state in this process's environment, every decision
+    and re-observation seen through ``retrieval`` (None: the oracle) under ``variant``'s lighting;
+    one store row per step of it (the sequence up to and including that primitive), keyed by the
+    plans executed. A re-observation inside a primitive keeps its state (``regrasp.qpos``) and its
+    plan, so that another head's plan there can be compared without simulating."""
     from scenegen.env.episodes import EpisodeRecorder
+    from scenegen.manipulation.primitives import plan_top_grasp
     from scenegen.manipulation.rollout import run_primitive
     from scenegen.perception.observation import observe as look
 
     perception = _perception(retrieval)
-    seen = sight(retrieval, variant)
     env = _env(scene)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     data = env.sim.data._data
     start = float(data.time)
     episode = (start, float(env.target_pose()[0][2]))
     recorder = EpisodeRecorder(env, "path", observation_kind="rgbd")
-    sha, rows = scene_sha256(scene), []
-    for k, name in enumerate(prefix):
-        observed = score = None
-        if perception is not None:
-            from scenegen.perception.retrieval.evaluate import score_observation
+    sha, rows, tokens = scene_sha256(scene), [], []
+    again: list[dict] = []  # the re-observations inside the attempt under way
 
-            observed = look(env, perception)
-            score = score_observation(env, observed[0])
-        outcome, _ = run_primitive(
-            env, name, recorder, episode=episode, perception=perception, observed=observed
+    def look_again():
+        obs, view = look(env, perception)
+        plan = None if view is None else plan_top_grasp(view)
+        again.append({"qpos": data.qpos.tolist(), "plan": plan_digest(plan)})
+        return obs, view
+
+    for k, name in enumerate(prefix):
+        again.clear()
+        outcome, params = run_primitive(
+            env, name, recorder, episode=episode, perception=perception, look=look_again
         )
+        decision = decision_token(name, params)
+        regrasp = again[0] if again else None
+        tokens.append(decision + (f"+{regrasp['plan']}" if regrasp else ""))
         features = attempt_features(recorder.snapshot(), scene.target_id, k, outcome.other_touched)
-        if score is not None:
-            features["mask_missed"] = not score["hit"] or score["wrong_object"]
         rows.append(
             {
-                "key": path_key(sha, prefix[: k + 1], seen),
+                "key": path_key(sha, tokens),
+                "rules": SEQUENCE_RULES,
                 "scene_sha256": sha,
                 "prefix": list(prefix[: k + 1]),
+                "tokens": list(tokens),
+                "decision": decision,
+                "regrasp": regrasp,
                 "success": bool(outcome.success),
                 "success_time": None if outcome.success_time is None else round(outcome.success_time, 6),
                 "time": round(float(data.time) - start, 6),
-                "features": features,
+                "features": {k: v for k, v in features.items() if k not in ("mask_pixels", "mask_missed")},
                 "qpos": data.qpos.tolist(),
             }
         )
@@ -243,39 +324,63 @@ def observe(
     variant: Variant,
     inputs: str,
     retrieval: Path | None = None,
-) -> np.ndarray:
-    """The policy input (``rgbd``: the front camera crop, its mask the ``retrieval`` head's
-    prediction or the oracle's; ``state``: the state features) of ``scene`` (as ``variant`` shows
-    it) at ``qpos`` (None: the settled state)."""
-    import mujoco
-
+) -> tuple[np.ndarray, dict]:
+    """A decision point of ``scene`` (as ``variant`` shows it) at ``qpos`` (None: the settled state):
+    the policy input (``rgbd``: the front camera crop, its mask the ``retrieval`` head's prediction
+    or the oracle's; ``state``: the state features) and what the decision needs besides: each
+    primitive's plan token from what the planners see there, the pixels of the target's mask
+    the decision used and, through a head, its prediction's score against the truth."""
+    from scenegen.perception.observation import observe as look
     from scenegen.perception.observation import state_features
+    from scenegen.policy.failures import _mask_pixels
     from scenegen.policy.train import policy_input
 
     env = _env(scene)
-    shown = variant.apply(scene)
-    env.reset_to(shown)
-    if qpos is not None:
-        model, data = env.sim.model._model, env.sim.data._data
-        data.qpos[:] = qpos
-        data.qvel[:] = 0
-        mujoco.mj_forward(model, data)
-    if inputs == "state":
-        return state_features(env)
     perception = _perception(retrieval)
+    env.reset_to(variant.apply(scene))
+    _state(env, qpos)
+    obs, view = look(env, perception)
+    plans = {
+        name: decision_token(name, None if view is None else p.plan(view)) for name, p in PRIMITIVES.items()
+    }
+    meta = {"plans": plans, "mask_pixels": _mask_pixels(obs, scene.target_id), "score": None}
     if perception is not None:
-        from scenegen.perception.observation import observe as look
+        from scenegen.perception.retrieval.evaluate import score_observation
 
-        return policy_input(look(env, perception)[0])
-    return policy_input(env.camera_observations(), scene.target_id)
+        score = score_observation(env, obs)
+        meta["score"] = {"hit": bool(score["hit"]), "wrong_object": bool(score["wrong_object"])}
+    value = state_features(env) if inputs == "state" else policy_input(obs, scene.target_id)
+    return value, meta
+
+
+def regrasp_plan(scene: EnvScene, qpos: Sequence[float], variant: Variant, retrieval: Path | None) -> str:
+    """The plan a re-observation at ``qpos`` makes through ``retrieval`` (None: the oracle)."""
+    from scenegen.manipulation.primitives import plan_top_grasp
+    from scenegen.perception.observation import observe as look
+
+    env = _env(scene)
+    perception = _perception(retrieval)
+    env.reset_to(variant.apply(scene) if perception is not None else scene)
+    _state(env, qpos)
+    _, view = look(env, perception)
+    return plan_digest(None if view is None else plan_top_grasp(view))
 
 
 def _job(job: tuple) -> tuple:
+    """One job for a worker; returns (kind, result, CPU seconds it took)."""
+    import time
+
     kind, scene, arg = job[0], job[1], job[2]
+    began = time.process_time()
     if kind == "simulate":  # (prefix, retrieval, variant)
-        return kind, simulate(scene, *arg)
-    qpos, variant, inputs, key, *retrieval = arg
-    return kind, (key, observe(scene, qpos, variant, inputs, *retrieval))
+        result = simulate(scene, *arg)
+    elif kind == "regrasp":  # (qpos, variant, key, retrieval)
+        qpos, variant, key, retrieval = arg
+        result = (key, regrasp_plan(scene, qpos, variant, retrieval))
+    else:
+        qpos, variant, inputs, key, *retrieval = arg
+        result = (key, *observe(scene, qpos, variant, inputs, *retrieval))
+    return kind, result, time.process_time() - began
 
 
 class Workers:
@@ -313,9 +418,97 @@ class _Run:
     policy: str
     scene: EnvScene
     sha: str
-    prefix: tuple[str, ...] = ()
+    prefix: tuple[str, ...] = ()  # the primitives chosen
+    tokens: tuple[str, ...] = ()  # the plans executed (path_key)
+    decisions: list = dataclasses.field(default_factory=list)  # each decision's meta (observe)
+    entry: dict | None = None  # the store row after the last attempt
     done: bool = False
     success: bool = False
+
+
+@dataclass
+class Cost:
+    """Where an evaluation's work went: attempts answered from the store (``shared``) or simulated,
+    and the CPU seconds of each kind of job (measured in the process that ran it)."""
+
+    attempts: int = 0
+    shared: int = 0
+    simulated: int = 0
+    cpu: dict = dataclasses.field(
+        default_factory=lambda: dict.fromkeys(("observe", "regrasp", "simulate"), 0.0)
+    )
+
+    def add(self, kind: str, seconds: float) -> None:
+        self.cpu[kind] += seconds
+
+    def summary(self, episodes: int) -> dict:
+        total = sum(self.cpu.values())
+        return {
+            "episodes": episodes,
+            "attempts": self.attempts,
+            "shared": self.shared,
+            "sharing_rate": round(self.shared / self.attempts, 4) if self.attempts else None,
+            "sequences_simulated": self.simulated,
+            "cpu_seconds": {k: round(v, 2) for k, v in self.cpu.items()},
+            "cpu_per_episode": round(total / episodes, 3) if episodes else None,
+        }
+
+
+def _observations(runs, inputs_of, observations, variant, seen, retrieval, workers, cost, progress) -> None:
+    """Render the decision points the observation store lacks (``inputs_of(run)``: the input kind)."""
+    wanted = {}
+    for r in runs:
+        inputs = inputs_of(r)
+        key = ObservationStore.key(r.sha, r.tokens, variant, inputs, seen)
+        if observations.meta(key) is None or observations.get(key) is None:
+            qpos = r.entry["qpos"] if r.entry else None
+            wanted[key] = ("observe", r.scene, (qpos, variant, inputs, key, retrieval))
+    for kind, (key, value, meta), seconds in workers.map(list(wanted.values())):
+        observations.put(key, value, meta)
+        cost.add(kind, seconds)
+        progress and progress("observation")
+
+
+def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost, progress) -> None:
+    """Each run's chosen attempt (``r.prefix[-1]``, decided as ``r.decisions[-1]``): from the store
+    where the same plans were executed before (a re-observation's plan compared at its stored state),
+    else simulated; sets ``r.entry`` and ``r.tokens``."""
+    checks = {}
+    for r in runs:
+        decision = r.decisions[-1]["plans"][r.prefix[-1]]
+        found = store.candidates(r.sha, r.tokens, decision)
+        if found and all(row["regrasp"] is not None for row in found):
+            key = _regrasp_key(r, decision, variant, seen)
+            if observations.meta(key) is None:
+                checks[key] = ("regrasp", r.scene, (found[0]["regrasp"]["qpos"], variant, key, retrieval))
+    for kind, (key, plan), seconds in workers.map(list(checks.values())):
+        observations.put(key, None, {"plan": plan})
+        cost.add(kind, seconds)
+    missing: dict[tuple, tuple] = {}
+    for r in runs:
+        cost.attempts += 1
+        decision = r.decisions[-1]["plans"][r.prefix[-1]]
+        meta = observations.meta(_regrasp_key(r, decision, variant, seen))
+        r.entry = match(store, r.sha, r.tokens, decision, meta and meta["plan"])
+        if r.entry is not None:
+            cost.shared += 1
+        else:
+            missing.setdefault((r.sha, r.prefix), ("simulate", r.scene, (r.prefix, retrieval, variant)))
+    measured = {}
+    results = workers.map(list(missing.values()))
+    for job_key, (kind, rows, seconds) in zip(list(missing), results, strict=True):
+        store.add(rows)
+        measured[job_key] = store.entries[rows[-1]["key"]]
+        cost.add(kind, seconds)
+        cost.simulated += 1
+        progress and progress("simulation")
+    for r in runs:
+        r.entry = r.entry or measured[(r.sha, r.prefix)]
+        r.tokens = tuple(r.entry["tokens"])
+
+
+def _regrasp_key(r: _Run, decision: str, variant: Variant, seen: str) -> str:
+    return ObservationStore.key(r.sha, (*r.tokens, decision), variant, "regrasp", seen)
 
 
 def evaluate_policies(
@@ -327,105 +520,91 @@ def evaluate_policies(
     workers: Workers | None = None,
     progress=None,
     retrieval: Path | None = None,
+    cost: Cost | None = None,
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
     policy, scene id, tags, target category, the primitives chosen, success, failure labels.
     ``workers``: an open :class:`Workers` (default: this process); ``retrieval``: the retrieval
-    head every decision and re-observation sees through (None: the oracle's masks). The expert rows
-    stay the oracle's: they say what the physics allows."""
+    head every decision and re-observation sees through (None: the oracle's masks); ``cost``: a
+    :class:`Cost` to count the sharing and the CPU in. The expert rows stay the oracle's: they say
+    what the physics allows."""
     import torch
 
     if workers is None:
         with Workers(1) as here:
             return evaluate_policies(
-                policies, scenes, store, observations, variant, here, progress, retrieval
+                policies, scenes, store, observations, variant, here, progress, retrieval, cost
             )
+    cost = cost if cost is not None else Cost()
     seen = sight(retrieval, variant)
-
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
     for _ in range(ATTEMPTS):
-        for r in runs:  # a policy that has tried every primitive it knows stops
+        for r in runs:  # a policy that has tried every primitive it knows stops; so does the clock
             r.done = r.done or len(r.prefix) >= len(policies[r.policy].primitives)
+            r.done = r.done or (r.entry is not None and r.entry["time"] >= TIME_LIMIT)
         going = [r for r in runs if not r.done]
         if not going:
             break
-        inputs = {r.policy: policies[r.policy].inputs for r in going}
-        wanted = {}
+        inputs_of = lambda r: policies[r.policy].inputs  # noqa: E731
+        _observations(going, inputs_of, observations, variant, seen, retrieval, workers, cost, progress)
         for r in going:
-            entry = store.get(r.sha, r.prefix, seen) if r.prefix else None
-            if entry is not None and entry["time"] >= TIME_LIMIT:  # the time limit: no new attempt
-                r.done = True
-                continue
-            key = ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy], seen)
-            if observations.get(key) is None:
-                qpos = entry["qpos"] if entry else None
-                wanted[key] = ("observe", r.scene, (qpos, variant, inputs[r.policy], key, retrieval))
-        for _, (key, value) in workers.map(list(wanted.values())):
-            observations.put(key, value)
-            progress and progress("observation")
-        missing = {}
+            key = ObservationStore.key(r.sha, r.tokens, variant, policies[r.policy].inputs, seen)
+            x = observations.get(key)
+            r.decisions.append(observations.meta(key))
+            r.prefix = (*r.prefix, policies[r.policy].choose(torch.from_numpy(x), exclude=set(r.prefix)))
+            r.entry = None
+        _resolve(going, store, observations, variant, seen, retrieval, workers, cost, progress)
         for r in going:
-            if r.done:
-                continue
-            x = observations.get(ObservationStore.key(r.sha, r.prefix, variant, inputs[r.policy], seen))
-            choice = policies[r.policy].choose(torch.from_numpy(x), exclude=set(r.prefix))
-            r.prefix = (*r.prefix, choice)
-            if store.get(r.sha, r.prefix, seen) is None:
-                missing[path_key(r.sha, r.prefix, seen)] = (
-                    "simulate",
-                    r.scene,
-                    (r.prefix, retrieval, variant),
-                )
-        _simulate(store, list(missing.values()), workers, progress)
-        for r in going:
-            if not r.done:
-                r.success = store.get(r.sha, r.prefix, seen)["success"]
-                r.done = r.success
+            r.success = r.done = bool(r.entry["success"])
     failed = {r.sha: r.scene for r in runs if not r.success}
     known = sorted({p for policy in policies.values() for p in policy.primitives}, key=list(PRIMITIVES).index)
-    experts = expert_rows(store, failed.values(), known, workers, progress)
-    return [_record(r, store, experts, policies[r.policy], seen) for r in runs]
-
-
-def _simulate(store: PathStore, jobs: list[tuple], workers: Workers, progress=None) -> None:
-    for _, rows in workers.map(jobs):
-        store.add(rows)
-        progress and progress("simulation")
+    experts = expert_rows(store, observations, failed.values(), known, workers, progress)
+    return [_record(r, store, experts, policies[r.policy]) for r in runs]
 
 
 def expert_rows(
-    store: PathStore, scenes, primitives: Sequence[str], workers: Workers, progress=None
+    store: PathStore,
+    observations: ObservationStore,
+    scenes,
+    primitives: Sequence[str],
+    workers: Workers,
+    progress=None,
 ) -> dict[str, list[dict]]:
-    """Per scene sha256, the expert label rows (primitive, success) of ``primitives``, from the
-    one-primitive sequences (simulated where missing)."""
-    scenes = list(scenes)
-    jobs = [
-        ("simulate", s, ((name,), None, NOMINAL))
-        for s in scenes
-        for name in primitives
-        if store.get(scene_sha256(s), (name,)) is None
-    ]
-    _simulate(store, jobs, workers, progress)
-    return {
-        sha: [{"primitive": n, "success": store.get(sha, (n,))["success"]} for n in primitives]
-        for sha in {scene_sha256(s) for s in scenes}
-    }
+    """Per scene sha256, the expert label rows (primitive, success) of ``primitives``: each one
+    executed first, with the oracle's plans (from the store, simulated where missing)."""
+    runs = [_Run(name, s, scene_sha256(s), prefix=(name,)) for s in scenes for name in primitives]
+    if not runs:
+        return {}
+    cost = Cost()
+    _observations(runs, lambda r: "rgbd", observations, NOMINAL, "oracle", None, workers, cost, progress)
+    for r in runs:
+        r.decisions.append(observations.meta(ObservationStore.key(r.sha, (), NOMINAL, "rgbd", "oracle")))
+    _resolve(runs, store, observations, NOMINAL, "oracle", None, workers, cost, progress)
+    experts: dict[str, list[dict]] = {}
+    for r in runs:
+        experts.setdefault(r.sha, []).append({"primitive": r.prefix[0], "success": bool(r.entry["success"])})
+    return experts
 
 
-def _record(run: _Run, store: PathStore, experts: dict, policy, seen: str = "oracle") -> dict:
+def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
     scene = run.scene
     tags = [t for t in RARE_TAGS if scene.tags.get(t)]
     category = target_category(scene)
-    entry = store.get(run.sha, run.prefix, seen) if run.prefix else None
+    entry = run.entry
     causes: list[str] = []
     if not run.success:
         coverage = {(t, c): n for t, c, n in policy.trained_on.get("coverage", [])} or None
         for k, primitive in enumerate(run.prefix):
-            features = store.get(run.sha, run.prefix[: k + 1], seen)["features"]
-            first = k == 0
+            decided = run.decisions[k]
+            score = decided["score"]
+            features = {
+                **store.get(run.sha, run.tokens[: k + 1])["features"],
+                "mask_pixels": decided["mask_pixels"],
+                "mask_missed": None if score is None else not score["hit"] or score["wrong_object"],
+            }
             expert = experts.get(run.sha, ())
             causes.append(
-                attempt_cause(features, primitive, expert, tags or ["nominal"], category, coverage, first)
+                attempt_cause(features, primitive, expert, tags or ["nominal"], category, coverage, k == 0)
             )
         causes = causes or ["perception"]
     return {
@@ -435,9 +614,11 @@ def _record(run: _Run, store: PathStore, experts: dict, policy, seen: str = "ora
         "tags": tags,
         "target_category": category,
         "choices": list(run.prefix),
+        "plans": list(run.tokens),
         "success": run.success,
         "first_attempt": bool(run.success and len(run.prefix) == 1),
         "time": entry["time"] if entry else 0.0,
+        "perception": [d["score"] for d in run.decisions],
         "failure": causes[0] if causes else "",
         "attempt_failures": causes,
         "out_of_time": bool(not run.success and entry is not None and out_of_time(entry["time"])),

@@ -150,8 +150,8 @@ def settled_inputs(
         for s, k in zip(scenes, keys, strict=True)
         if observations.get(k) is None
     ]
-    for _, (key, value) in workers.map(jobs):
-        observations.put(key, value)
+    for _, (key, value, meta), _ in workers.map(jobs):
+        observations.put(key, value, meta)
     return np.stack([observations.get(k) for k in keys])
 
 

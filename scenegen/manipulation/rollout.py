@@ -16,6 +16,7 @@ def run_primitive(
     episode: tuple[float, float] | None = None,
     perception=None,
     observed: tuple | None = None,
+    look=None,
 ) -> tuple[RetrieveOutcome, dict | None]:
     """Observe (``rgbd``, or the ``state`` ablation), plan ``name`` and execute it from the
     environment's current state; the outcome as the simulator measured it and the planned parameters
@@ -50,5 +51,5 @@ def run_primitive(
             env.step(action)
         monitor.update()
 
-    chosen.execute(env, params, step=step, look=lambda: observe(env, perception))
+    chosen.execute(env, params, step=step, look=look or (lambda: observe(env, perception)))
     return monitor.outcome, params

@@ -207,11 +207,16 @@ def load_panels_v2(path: Path = PANELS_V2_FILE) -> dict:
 
 
 def panel_scenes(panels: dict, side: str, sources=SOURCES) -> dict[str, list[EnvScene]]:
-    """The EnvScenes of one side (``test`` or ``validation``) of version 2 panels, per panel."""
-    by_id = {panel_id(s): s for s in source_layouts(sources)}
-    missing = sorted({i for ids in panels[side].values() for i in ids} - set(by_id))
+    """The EnvScenes of one side (``test`` or ``validation``) of version 2 panels, per panel (only
+    the source tables the panels name are read)."""
+    wanted = {i for ids in panels[side].values() for i in ids}
+    tables = {i.split("/")[0] for i in wanted}
+    by_id = {
+        panel_id(s): s for s in source_layouts([(p, split) for p, split in sources if Path(p).stem in tables])
+    }
+    missing = sorted(wanted - set(by_id))
     if missing:
         raise ValueError(
-            f"panels: {len(missing)} layouts not in the sources (e.g. {missing[0]}); rebuild them"
+            f"panels: {len(missing)} layouts not in the sources (e.g. {missing[0]}): rebuild them"
         )
     return {name: [by_id[i] for i in ids] for name, ids in panels[side].items()}

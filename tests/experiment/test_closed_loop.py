@@ -1,13 +1,19 @@
-"""The sequence store under today's rules (the time limit held on a success, features per attempt)."""
+"""The sequence store under today's rules: the time limit held on a success, features per attempt, and
+sequences keyed by the plans executed, so that policies seeing through different heads share exactly
+what they execute alike."""
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
-from scenegen.experiment.closed_loop import PathStore
+import pytest
 
-VERSION_1 = Path(__file__).resolve().parents[2] / "assets" / "transfer" / "paths.jsonl"
+from scenegen.experiment.closed_loop import SEQUENCE_RULES, Cost, ObservationStore, PathStore, match
+
+ROOT = Path(__file__).resolve().parents[2] / "assets"
+VERSION_1 = ROOT / "transfer" / "paths.jsonl"
 
 
 def test_version_1_sequences_are_not_served_under_todays_rules(tmp_path: Path):
@@ -20,32 +26,101 @@ def test_version_1_sequences_are_not_served_under_todays_rules(tmp_path: Path):
     copy = tmp_path / "paths.jsonl"
     copy.write_bytes(VERSION_1.read_bytes())
     store = PathStore(copy)
-    assert len(store.entries) == len(rows)
+    assert len(store.entries) == len(rows) and not store.decisions
     assert all(store.get(r["scene_sha256"], r["prefix"]) is None for r in rows)
 
 
-def test_policies_seeing_through_a_retrieval_head_keep_their_own_sequences(demo_batch: Path, tmp_path: Path):
-    """The plan depends on what the planners see: sequences measured through the retrieval head are
-    keyed apart from the oracle's, carry the perception rule's input, and a second evaluation of the
-    same policies reuses every one of them."""
+def _row(decision: str, regrasp: str | None, success: bool) -> dict:
+    tokens = [decision + (f"+{regrasp}" if regrasp else "")]
+    return {
+        "key": f"s|rules{SEQUENCE_RULES}|{tokens[0]}", "rules": SEQUENCE_RULES, "scene_sha256": "s",
+        "prefix": ["pull_out_then_grasp"], "tokens": tokens, "decision": decision, "success": success,
+        "time": 20.0, "regrasp": None if regrasp is None else {"qpos": [0.0], "plan": regrasp},
+    }  # fmt: skip
+
+
+def test_an_attempt_is_served_only_when_its_decision_and_its_re_observation_plans_match(tmp_path: Path):
+    store = PathStore(tmp_path / "paths.jsonl")
+    store.add(
+        [_row("pull@3:aaa", "r1", True), _row("pull@3:aaa", "r2", False), _row("top@1:bbb", None, True)]
+    )
+    assert match(store, "s", (), "pull@3:aaa", "r1")["success"] is True
+    assert match(store, "s", (), "pull@3:aaa", "r2")["success"] is False
+    assert match(store, "s", (), "pull@3:aaa", "r3") is None  # another plan at the re-observation
+    assert match(store, "s", (), "pull@3:ccc", "r1") is None  # another plan at the decision
+    assert match(store, "s", (), "top@1:bbb", None)["success"] is True
+    again = PathStore(tmp_path / "paths.jsonl")  # read back from the file
+    assert again.candidates("s", (), "pull@3:aaa") == store.candidates("s", (), "pull@3:aaa")
+    again.add([{**_row("top@1:bbb", None, False)}])  # the same plans measured otherwise: counted
+    assert again.mismatches == 1
+
+
+@pytest.fixture(scope="module")
+def learned_run(demo_batch: Path, tmp_path_factory):
     from scenegen.env.scenes import batch_scenes
-    from scenegen.experiment.closed_loop import ObservationStore, evaluate_policies
+    from scenegen.experiment.closed_loop import evaluate_policies
     from scenegen.policy.network import PrimitivePolicy
 
-    root = Path(__file__).resolve().parents[2] / "assets"
-    policies = {"baseline": PrimitivePolicy.load(root / "policy" / "baseline")}
-    scenes = batch_scenes(demo_batch)[:1]
-    store, observations = PathStore(tmp_path / "paths.jsonl"), ObservationStore(tmp_path / "obs")
-    learned = evaluate_policies(
-        policies, scenes, store, observations, retrieval=root / "retrieval" / "baseline"
-    )
+    folder = tmp_path_factory.mktemp("closed_loop")
+    policies = {"baseline": PrimitivePolicy.load(ROOT / "policy" / "baseline")}
+    scenes = batch_scenes(demo_batch)[:2]
+    store, observations = PathStore(folder / "paths.jsonl"), ObservationStore(folder / "obs")
+    cost = Cost()
+    head = ROOT / "retrieval" / "baseline"
+    records = evaluate_policies(policies, scenes, store, observations, retrieval=head, cost=cost)
+    return folder, policies, scenes, store, observations, records, cost
+
+
+def test_a_learned_evaluation_is_reused_whole_and_counts_its_cost(learned_run):
+    from scenegen.experiment.closed_loop import evaluate_policies
+
+    _, policies, scenes, store, observations, records, cost = learned_run
+    assert all(r["choices"] and len(r["plans"]) == len(r["choices"]) for r in records)
+    assert all(len(r["perception"]) == len(r["choices"]) and "hit" in r["perception"][0] for r in records)
+    assert cost.attempts == sum(len(r["choices"]) for r in records) and cost.simulated >= 1
+    assert cost.cpu["simulate"] > 0 and cost.cpu["observe"] > 0
     keys = set(store.entries)
-    assert learned[0]["choices"] and all("|retrieval:" in k or "|oracle|" in k for k in keys)
-    seen = [row for key, row in store.entries.items() if "|retrieval:" in key]
-    assert seen and all("mask_missed" in row["features"] for row in seen)
-    again = evaluate_policies(
-        policies, scenes, store, observations, retrieval=root / "retrieval" / "baseline"
+    again = Cost()
+    head = ROOT / "retrieval" / "baseline"
+    assert evaluate_policies(policies, scenes, store, observations, retrieval=head, cost=again) == records
+    assert set(store.entries) == keys and again.simulated == 0 and again.shared == again.attempts
+    assert store.mismatches == 0
+
+
+def test_a_head_with_other_bytes_but_the_same_plans_shares_every_attempt(learned_run, tmp_path: Path):
+    """Another checkpoint (here: the same weights saved with other metadata, so its own observation
+    keys) that makes the same plans executes nothing new: the store is keyed by plans, not heads."""
+    from safetensors.torch import load_file, save_file
+
+    from scenegen.experiment.closed_loop import evaluate_policies
+
+    _, policies, scenes, store, observations, records, _ = learned_run
+    twin = tmp_path / "twin"
+    shutil.copytree(ROOT / "retrieval" / "baseline", twin)
+    save_file(load_file(twin / "model.safetensors"), twin / "model.safetensors", metadata={"twin": "1"})
+    cost = Cost()
+    twins = evaluate_policies(policies, scenes, store, observations, retrieval=twin, cost=cost)
+    assert [r["plans"] for r in twins] == [r["plans"] for r in records]
+    assert cost.simulated == 0 and cost.shared == cost.attempts and cost.cpu["observe"] > 0
+
+
+def test_the_perception_gap_runs_both_settings_on_one_store(demo_batch: Path, tmp_path: Path):
+    """``run_gap``: the same layouts through the head and through the oracle, each setting's
+    success, perception failures and cost in the summary, episodes written per setting."""
+    from scenegen.env.scenes import batch_scenes
+    from scenegen.experiment.perception_gap import run_gap
+
+    scenes = batch_scenes(demo_batch)[:2]
+    panel = {"common": scenes, "first": scenes[:1]}
+    summary = run_gap(
+        ROOT / "policy" / "baseline", ROOT / "retrieval" / "baseline", panel, tmp_path, progress=False
     )
-    assert again == learned and set(store.entries) == keys
-    oracle = evaluate_policies(policies, scenes, store, observations)
-    assert oracle[0]["choices"] and any("|oracle|" in k for k in set(store.entries) - keys)
+    for setting in ("learned", "oracle"):
+        block = summary["settings"][setting]
+        assert block["success"]["all"]["episodes"] == 2 and block["success"]["first"]["episodes"] == 1
+        assert block["cost"]["attempts"] >= 2 and block["cost"]["cpu_per_episode"] > 0
+        lines = (tmp_path / f"episodes_{setting}.jsonl").read_text().splitlines()
+        assert len(lines) == 2
+    assert summary["settings"]["learned"]["success"]["all"]["first_decision_hit"] is not None
+    assert summary["settings"]["oracle"]["success"]["all"]["first_decision_hit"] is None
+    assert summary["store_mismatches"] == 0 and "| common | 2 |" in (tmp_path / "summary.md").read_text()

@@ -79,3 +79,34 @@ def test_the_cli_names_the_files_the_module_names():
 
     args = _parser().parse_args(["experiment", "panels"])
     assert (args.labels, args.new_layouts, args.out) == (LABELS_V2, NEW_LAYOUTS, PANELS_V2_FILE)
+
+
+def test_a_panels_file_gives_its_scenes_and_the_head_is_scored_on_them(tmp_path, capsys):
+    """`scenegen retrieval eval --scenes panels.json --side validation` scores the head on exactly the
+    panel's layouts, per tag."""
+    import json
+
+    from scenegen.cli import main
+    from scenegen.env.scenes import scene_sha256
+    from scenegen.policy.panels_v2 import choose_panels_v2, panel_scenes, source_layouts
+
+    layouts = source_layouts(((REFERENCE, "heldout"),))
+    solvable = {scene_sha256(s): i % 3 != 0 for i, s in enumerate(layouts)}
+    panels = choose_panels_v2(layouts, solvable)
+    panels["validation"] = {
+        "occluded": panels["validation"]["occluded"][:2],
+        "common": panels["validation"]["common"][:1],
+    }
+    scenes = panel_scenes(panels, "validation")
+    assert [len(v) for v in scenes.values()] == [2, 1] and scenes["occluded"][0].tags["occluded"]
+    path = tmp_path / "panels.json"
+    path.write_text(json.dumps(panels))
+    out = tmp_path / "eval"
+    argv = ["retrieval", "eval", "--checkpoint", "assets/retrieval/baseline", "--scenes", str(path)]
+    assert main([*argv, "--out", str(out), "--cache", str(tmp_path / "frames"), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["all"]["scenes"] == 3 and summary["per_tag"]["occluded"]["scenes"] == 2
+    panels["validation"]["common"] = ["reference/reference_999999"]
+    path.write_text(json.dumps(panels))
+    assert main([*argv, "--out", str(out), "--quiet"]) == 2
+    assert "not in the sources" in capsys.readouterr().err

@@ -1,0 +1,143 @@
+"""What seeing for itself costs the policy: one policy in closed loop on a version 2 panel, through a
+retrieval head and through the oracle's masks (``scenegen experiment perception-gap``).
+
+Both settings run on one sequence store (closed_loop.PathStore, keyed by the plans executed), the
+head first, then the oracle, each with its own :class:`~scenegen.experiment.closed_loop.Cost`: how
+many attempts the store answered and the CPU seconds of each kind of job. The gap between the two
+success rates is the most any data can add to a policy that sees through this head (docs/policy.md).
+Writes ``episodes_<setting>.jsonl``, ``summary.json`` and ``summary.md``; resumable (the store and the
+observation cache keep what was measured).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from pathlib import Path
+
+from scenegen.experiment.closed_loop import (
+    NOMINAL,
+    Cost,
+    ObservationStore,
+    PathStore,
+    Workers,
+    evaluate_policies,
+)
+from scenegen.policy.success_table import wilson
+from scenegen.store.batch import atomic_write
+
+
+def _block(records: list[dict]) -> dict:
+    n, k = len(records), sum(r["success"] for r in records)
+    low, high = wilson(k, n) if n else (None, None)
+    perception = sum("perception" in r["attempt_failures"] for r in records)
+    first = [r["perception"][0] for r in records if r["perception"] and r["perception"][0]]
+    return {
+        "episodes": n,
+        "success": round(k / n, 4) if n else None,
+        "interval": [round(low, 4), round(high, 4)] if n else None,
+        "perception_failures": perception,
+        "first_decision_hit": round(sum(s["hit"] for s in first) / len(first), 4) if first else None,
+        "failures": dict(sorted(Counter(r["failure"] for r in records if not r["success"]).items())),
+        "out_of_time": sum(r["out_of_time"] for r in records),
+    }
+
+
+def summarise(records: list[dict], panels: dict[str, list[str]]) -> dict:
+    """Success with a 95 % Wilson interval, perception failures and failure labels, per panel and
+    over all of them (an episode counts once per panel that holds its layout)."""
+    by_id = {}
+    for r in records:
+        by_id.setdefault(r["panel_id"], r)
+    out = {"all": _block(list(by_id.values()))}
+    for name, ids in panels.items():
+        out[name] = _block([by_id[i] for i in ids if i in by_id])
+    return out
+
+
+def run_gap(
+    checkpoint: Path,
+    retrieval: Path,
+    panel: dict[str, list],
+    out: Path,
+    workers: int = 1,
+    progress: bool = True,
+) -> dict:
+    """Evaluate the policy at ``checkpoint`` on ``panel`` (panel name -> EnvScenes, each with its
+    ``panel_id``) through ``retrieval`` and through the oracle; write and return the summary."""
+    from tqdm import tqdm
+
+    from scenegen.policy.network import PrimitivePolicy
+    from scenegen.policy.panels_v2 import panel_id
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    policy = PrimitivePolicy.load(checkpoint)
+    scenes = list({panel_id(s): s for ss in panel.values() for s in ss}.values())
+    ids = {name: [panel_id(s) for s in ss] for name, ss in panel.items()}
+    store = PathStore(out / "paths.jsonl")
+    observations = ObservationStore(out / "observations")
+    summary = {
+        "checkpoint": str(checkpoint),
+        "retrieval": str(retrieval),
+        "layouts": len(scenes),
+        "settings": {},
+    }
+    with Workers(workers) as pool:
+        for setting, head in (("learned", retrieval), ("oracle", None)):
+            cost = Cost()
+            began = time.monotonic()
+            with tqdm(desc=setting, unit=" jobs", disable=not progress) as bar:
+                records = evaluate_policies(
+                    {"policy": policy},
+                    scenes,
+                    store,
+                    observations,
+                    NOMINAL,
+                    pool,
+                    lambda _, bar=bar: bar.update(),
+                    head,
+                    cost,
+                )
+            for scene, record in zip(scenes, records, strict=True):
+                record["panel_id"] = panel_id(scene)
+            lines = "".join(json.dumps(r, sort_keys=True) + "\n" for r in records)
+            atomic_write(out / f"episodes_{setting}.jsonl", lines.encode())
+            summary["settings"][setting] = {
+                "success": summarise(records, ids),
+                "cost": cost.summary(len(records)),
+                "wall_seconds": round(time.monotonic() - began, 1),
+            }
+    summary["store_mismatches"] = store.mismatches
+    atomic_write(out / "summary.json", (json.dumps(summary, indent=1) + "\n").encode())
+    atomic_write(out / "summary.md", markdown(summary).encode())
+    return summary
+
+
+def markdown(summary: dict) -> str:
+    """Per panel: success through the head and through the oracle, the gap, perception failures."""
+    learned, oracle = (summary["settings"][s]["success"] for s in ("learned", "oracle"))
+    lines = [
+        "| panel | episodes | learned | oracle | gap (points) | perception failures (learned) "
+        "| first decision hit |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name in learned:
+        a, b = learned[name], oracle[name]
+        if not a["episodes"]:
+            continue
+        gap = 100 * (b["success"] - a["success"])
+        lines.append(
+            f"| {name} | {a['episodes']} | {a['success']:.3f} | {b['success']:.3f} | {gap:+.1f} | "
+            f"{a['perception_failures']} | {a['first_decision_hit']} |"
+        )
+    lines.append("")
+    for setting, block in summary["settings"].items():
+        cost = block["cost"]
+        lines.append(
+            f"{setting}: {cost['episodes']} episodes, {cost['attempts']} attempts, {cost['shared']} from the "
+            f"store (sharing rate {cost['sharing_rate']}), {cost['sequences_simulated']} simulated, "
+            f"{cost['cpu_per_episode']} CPU-s per episode ({cost['cpu_seconds']})"
+        )
+    return "\n".join(lines) + "\n"
