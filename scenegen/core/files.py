@@ -81,6 +81,35 @@ def checkpoint_error(path: Path, exc: BaseException, remedy: str) -> CheckpointE
     return CheckpointError(f"{path}: does not load ({why}); {remedy}")
 
 
+def names_field(config: dict, key: str, folder: Path, what: str) -> list[str]:
+    """A checkpoint config's non-empty list of names under ``key``; CheckpointError otherwise."""
+    value = config.get(key)
+    if not (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
+        raise CheckpointError(f"{Path(folder) / 'config.json'}: {key}: a list of {what} names expected")
+    return value
+
+
+def int_field(config: dict, key: str, folder: Path, low: int, high: int) -> int:
+    """A checkpoint config's integer under ``key`` in [low, high]; CheckpointError otherwise."""
+    value = config.get(key)
+    if not (isinstance(value, int) and low <= value <= high):
+        raise CheckpointError(
+            f"{Path(folder) / 'config.json'}: {key}: an integer from {low} to {high} expected"
+        )
+    return value
+
+
+def load_weights(model, folder: Path, remedy: str) -> None:
+    """Load ``folder``'s model.safetensors into ``model``; CheckpointError naming the file otherwise."""
+    from safetensors.torch import load_file
+
+    path = Path(folder) / "model.safetensors"
+    try:
+        model.load_state_dict(load_file(str(path)))
+    except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+        raise checkpoint_error(path, exc, remedy) from None
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__

@@ -111,26 +111,25 @@ class PrimitivePolicy(nn.Module):
     @classmethod
     def load(cls, folder: Path) -> PrimitivePolicy:
         """The policy of a checkpoint folder; CheckpointError (one line, naming the file) otherwise."""
-        from safetensors.torch import load_file
-
-        from scenegen.core.files import CheckpointError, checkpoint_error, read_checkpoint_config
+        from scenegen.core.files import (
+            CheckpointError,
+            checkpoint_error,
+            int_field,
+            load_weights,
+            names_field,
+            read_checkpoint_config,
+        )
 
         folder = Path(folder)
         remedy = "train one with `scenegen policy train --out DIR`"
         config = read_checkpoint_config(folder, "policy", remedy)
-        primitives, width = config.get("primitives"), config.get("width")
-        if not (isinstance(primitives, list) and primitives and all(isinstance(p, str) for p in primitives)):
-            raise CheckpointError(f"{folder / 'config.json'}: primitives: a list of primitive names expected")
-        if not (isinstance(width, int) and 2 <= width <= 1024):
-            raise CheckpointError(f"{folder / 'config.json'}: width: an integer from 2 to 1024 expected")
+        primitives = names_field(config, "primitives", folder, "primitive")
+        width = int_field(config, "width", folder, 2, 1024)
         try:
             model = cls(primitives, width, config.get("inputs", "rgbd"))
         except (KeyError, TypeError, ValueError, AssertionError, RuntimeError) as exc:
             raise checkpoint_error(folder / "config.json", exc, remedy) from None
-        try:
-            model.load_state_dict(load_file(str(folder / "model.safetensors")))
-        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
-            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
+        load_weights(model, folder, remedy)
         training = config.get("training", {})
         coverage = training.get("coverage", []) if isinstance(training, dict) else None
         if not isinstance(coverage, list) or not all(_coverage_cell(cell) for cell in coverage):

@@ -222,23 +222,14 @@ class CandidatePicker:
     threshold = 0.5
 
     def __init__(self, folder: Path):
-        from safetensors.torch import load_file
-
-        from scenegen.core.files import CheckpointError, checkpoint_error, read_checkpoint_config
+        from scenegen.core.files import int_field, load_weights, names_field, read_checkpoint_config
 
         folder = Path(folder)
         remedy = "train one with `scenegen retrieval train --out DIR`"
         config = read_checkpoint_config(folder, "retrieval head", remedy)
-        categories, width = config.get("categories"), config.get("width")
-        if not (isinstance(categories, list) and categories and all(isinstance(c, str) for c in categories)):
-            raise CheckpointError(f"{folder / 'config.json'}: categories: a list of category names expected")
-        if not (isinstance(width, int) and 2 <= width <= 256):
-            raise CheckpointError(f"{folder / 'config.json'}: width: an integer from 2 to 256 expected")
-        self.model = CandidateClassifier(categories, width)
-        try:
-            self.model.load_state_dict(load_file(str(folder / "model.safetensors")))
-        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
-            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
+        categories = names_field(config, "categories", folder, "category")
+        self.model = CandidateClassifier(categories, int_field(config, "width", folder, 2, 256))
+        load_weights(self.model, folder, remedy)
         self.model.eval()
 
     def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:

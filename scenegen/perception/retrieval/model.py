@@ -97,25 +97,23 @@ class RetrievalHead(nn.Module):
     @classmethod
     def load(cls, folder: Path) -> RetrievalHead:
         """The head of a checkpoint folder; CheckpointError (one line, naming the file) otherwise."""
-        from safetensors.torch import load_file
-
-        from scenegen.core.files import CheckpointError, checkpoint_error, read_checkpoint_config
+        from scenegen.core.files import (
+            CheckpointError,
+            int_field,
+            load_weights,
+            names_field,
+            read_checkpoint_config,
+        )
 
         folder = Path(folder)
         remedy = "train one with `scenegen retrieval train --out DIR`"
         config = read_checkpoint_config(folder, "retrieval head", remedy)
-        categories, width = config.get("categories"), config.get("width")
         if config.get("kind") != "retrieval_head":
             raise CheckpointError(f"{folder / 'config.json'}: kind: 'retrieval_head' expected; " + remedy)
-        if not (isinstance(categories, list) and categories and all(isinstance(c, str) for c in categories)):
-            raise CheckpointError(f"{folder / 'config.json'}: categories: a list of category names expected")
-        if not (isinstance(width, int) and 2 <= width <= 256):
-            raise CheckpointError(f"{folder / 'config.json'}: width: an integer from 2 to 256 expected")
-        model = cls(categories, width)
-        try:
-            model.load_state_dict(load_file(str(folder / "model.safetensors")))
-        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
-            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
+        model = cls(
+            names_field(config, "categories", folder, "category"), int_field(config, "width", folder, 2, 256)
+        )
+        load_weights(model, folder, remedy)
         model.trained_on = config.get("training", {})
         return model.eval()
 
