@@ -14,8 +14,10 @@ first ``COMMON_TEST`` solvable nominal layouts outside the retrieval head's tuni
 ``RETRIEVAL_VALIDATION`` unique-category nominal layouts of the held-out split, docs/retrieval.md);
 the common validation pool, the first ``COMMON_VALIDATION`` inside it. A rare pool splits by a seeded
 permutation into ``VALIDATION_PER_TAG`` validation layouts and the rest for test. A tag whose pool
-stays under ``2 * MIN_PER_TAG`` once its sources are exhausted is ``short``: it has no panel of its
-own (docs/policy.md says so); its layouts still count in the retrieval head's offline metrics.
+stays under ``2 * MIN_PER_TAG`` once its sources are exhausted, or is projected to (its solvable
+rate so far, over at least 10 labelled layouts, times the layouts left), is ``short``: it has no
+panel of its own and is labelled no further (docs/policy.md says so); its layouts still count in
+the retrieval head's offline metrics.
 
 ``fill_pools`` labels just enough to settle the pools (``labels.label_until_solved``, in waves);
 ``choose_panels_v2`` draws them; ``scenegen experiment panels`` does both and writes panels.json.
@@ -115,6 +117,9 @@ def panel_pools(
             deficit = size - len(pool) - later
             rate = max(0.2, (len(pool) + later) / known) if known >= 10 else prior
             n = len(unknown) if deficit <= 0 else math.ceil(1.5 * deficit / rate)  # all inside the prefix
+            rare = name in PANEL_TAGS and known >= 10
+            if rare and len(pool) + later + (len(pool) + later) / known * len(unknown) < 2 * MIN_PER_TAG:
+                n = 0  # projected short: even its expected share of the rest leaves it without a panel
             for scene in unknown[:n]:
                 wanted.setdefault(panel_id(scene), scene)
         pools[name] = pool
@@ -155,7 +160,6 @@ def known_solvable(labels: Path) -> dict[str, bool]:
 def choose_panels_v2(layouts: list[EnvScene], solvable: dict[str, bool], seed: int = SEED) -> dict:
     """Test and validation panels from the settled pools (``panel_pools``); layouts by ``panel_id``."""
     pools, pending = panel_pools(layouts, solvable)
-    rng = np.random.default_rng(seed)
     test: dict[str, list[str]] = {}
     validation: dict[str, list[str]] = {}
     short = []
@@ -164,6 +168,7 @@ def choose_panels_v2(layouts: list[EnvScene], solvable: dict[str, bool], seed: i
         if len(ids) < 2 * MIN_PER_TAG:
             short.append(tag)
             continue
+        rng = np.random.default_rng([seed, PANEL_TAGS.index(tag)])  # a tag's split depends on its pool alone
         order = [ids[i] for i in rng.permutation(len(ids))]
         validation[tag] = sorted(order[:VALIDATION_PER_TAG])
         test[tag] = sorted(order[VALIDATION_PER_TAG:])
