@@ -1,7 +1,7 @@
 """What seeing for itself costs the policy: one policy in closed loop on a version 2 panel, through a
 retrieval head and through the oracle's masks (``scenegen experiment perception-gap``).
 
-Both settings run on one sequence store (closed_loop.PathStore, keyed by the plans executed), the
+Both settings run on one sequence store (sequences.PathStore, keyed by the plans executed), the
 head first, then the oracle, each with its own :class:`~scenegen.experiment.closed_loop.Cost`: how
 many attempts the store answered and the CPU seconds of each kind of job. The gap between the two
 success rates is the most any data can add to a policy that sees through this head (docs/policy.md).
@@ -16,14 +16,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from scenegen.experiment.closed_loop import (
-    NOMINAL,
-    Cost,
-    ObservationStore,
-    PathStore,
-    Workers,
-    evaluate_policies,
-)
+from scenegen.experiment.closed_loop import Cost, Workers, evaluate_policies
+from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore
 from scenegen.policy.success_table import wilson
 from scenegen.store.batch import atomic_write
 

@@ -29,7 +29,8 @@ import yaml
 from scenegen.core.files import load_rows
 from scenegen.env.mixture import MixtureRecipe
 from scenegen.env.scenes import EnvScene, batch_scenes, reference_scene
-from scenegen.experiment.closed_loop import NOMINAL, ObservationStore, PathStore, Variant, Workers
+from scenegen.experiment.closed_loop import Workers
+from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore, Variant
 from scenegen.experiment.transfer_config import TransferConfig, check_inputs
 from scenegen.experiment.transfer_sources import (
     choose_reference_sets,

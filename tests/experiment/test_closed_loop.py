@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from scenegen.experiment.closed_loop import SEQUENCE_RULES, Cost, ObservationStore, PathStore, match
+from scenegen.experiment.closed_loop import Cost
+from scenegen.experiment.sequences import SEQUENCE_RULES, ObservationStore, PathStore, match
 
 ROOT = Path(__file__).resolve().parents[2] / "assets"
 VERSION_1 = ROOT / "transfer" / "paths.jsonl"

@@ -1,0 +1,188 @@
+"""What the closed loop measures, kept so that it is measured once: the sequence store and the
+observation store (``closed_loop.py`` runs the evaluation over them).
+
+Given a scene, the physics is a function of the plans executed: :class:`PathStore` keeps each measured
+primitive sequence keyed by the scene's sha256, the rules' version (``SEQUENCE_RULES``) and every
+attempt's token (``decision_token``: the primitive, its version and a digest of its plan; ``+digest``
+of the plan made at a re-observation inside push or pull): whether the last attempt succeeded (the hold
+complete within the task's time limit, counted from the episode's start) and when, the simulated time
+so far, the failure rules' physical features of the last attempt, the state after it (``qpos``) and,
+for an attempt that looked again, the state and plan of that re-observation. Policies seeing through
+any head (or the oracle) that execute the same plans share the outcome exactly; :func:`match` serves an
+attempt with a re-observation once the policy's own plan at the stored re-observation state agrees.
+:class:`ObservationStore` keeps decision points (the policy input, each primitive's plan token, what the
+decision's mask was), keyed by the state, what the planners see through (``sight``) and the lighting
+(:class:`Variant`). Both are appended as they are measured, so a killed evaluation continues where it
+stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from scenegen.env.scenes import EnvScene
+from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.store.batch import atomic_write, recover_jsonl
+
+
+@dataclass(frozen=True)
+class Variant:
+    """What the cameras see: ``nominal``, or a shift of the scene's lighting (every light's intensity
+    and the ambient term scaled by ``light_scale``). Lighting changes only the colour frames, which
+    the policy reads; the planners read depth and the instance mask, so the physics of a sequence is
+    the same under every variant and one PathStore serves them all."""
+
+    name: str = "nominal"
+    light_scale: float = 1.0
+
+    def apply(self, scene: EnvScene) -> EnvScene:
+        if self.light_scale == 1.0:
+            return scene
+        lighting = scene.lighting
+        lights = tuple(
+            light.model_copy(update={"intensity": min(3.0, light.intensity * self.light_scale)})
+            for light in lighting.lights
+        )
+        ambient = tuple(min(1.0, a * self.light_scale) for a in lighting.ambient)
+        shifted = lighting.model_copy(update={"lights": lights, "ambient": ambient})
+        return dataclasses.replace(scene, lighting=shifted)
+
+
+NOMINAL = Variant()
+
+
+# 2: success held to the time limit from the episode's start, features per attempt, other objects
+# touched (version 1, assets/transfer/paths.jsonl: success per attempt, features over the episode);
+# 3: keyed by the plans executed (decision and re-observation), not by what the planners saw
+SEQUENCE_RULES = 3
+PLAN_DIGITS = 9  # a plan's numbers in its key: 1e-9 m, far below what the controller resolves
+
+
+def plan_digest(plan: dict | None) -> str:
+    """A plan's parameters as a short digest (``unseen``: no plan, the target was not seen)."""
+    if plan is None:
+        return "unseen"
+
+    def rounded(value):
+        if isinstance(value, (list, tuple, np.ndarray)):
+            return [rounded(v) for v in value]
+        return round(float(value), PLAN_DIGITS) if isinstance(value, (float, np.floating)) else value
+
+    text = json.dumps({k: rounded(v) for k, v in plan.items()}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def decision_token(name: str, plan: dict | None) -> str:
+    """What an attempt executes as decided: the primitive, its version and its plan."""
+    return f"{name}@{PRIMITIVES[name].version}:{plan_digest(plan)}"
+
+
+def path_key(sha: str, tokens: Sequence[str]) -> str:
+    """A sequence's key: the scene, the rules and every attempt's token (its decision, and the plan
+    made at a re-observation inside it, ``+digest``). The physics is a function of the scene and
+    the plans executed, so any two policies, seeing through any heads, that execute the same plans
+    share the outcome exactly."""
+    return f"{sha}|rules{SEQUENCE_RULES}|" + "|".join(tokens)
+
+
+def sight(retrieval: Path | None, variant: Variant) -> str:
+    """What the planners see through: ``oracle`` (the simulator's masks: lighting cannot change a
+    plan), or a retrieval head (its weights' sha256) under ``variant``'s lighting, which its
+    predictions, hence the plans, depend on. It keys observations, not sequences."""
+    if retrieval is None:
+        return "oracle"
+    from scenegen.core.files import sha256_file
+
+    digest = sha256_file(Path(retrieval) / "model.safetensors")[:16]
+    return f"retrieval:{digest}@{variant.name}:{variant.light_scale}"
+
+
+class PathStore:
+    """Measured primitive sequences, appended to a JSONL file (a torn last line is dropped). Rows of
+    earlier rules stay in the file and answer nothing."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.entries: dict[str, dict] = {}
+        self.decisions: dict[tuple, list[dict]] = {}
+        self.mismatches = 0  # a plan path measured twice with different outcomes (should stay 0)
+        for row in recover_jsonl(self.path):
+            self._index(row)
+
+    def _index(self, row: dict) -> None:
+        self.entries[row["key"]] = row
+        if row.get("rules") == SEQUENCE_RULES:
+            where = (row["scene_sha256"], tuple(row["tokens"][:-1]), row["decision"])
+            self.decisions.setdefault(where, []).append(row)
+
+    def get(self, sha: str, tokens: Sequence[str]) -> dict | None:
+        return self.entries.get(path_key(sha, tokens))
+
+    def candidates(self, sha: str, before: Sequence[str], decision: str) -> list[dict]:
+        """The measured attempts that execute ``decision`` after the attempts ``before``: one, or
+        several that differ in the plan made at the re-observation inside the primitive."""
+        return self.decisions.get((sha, tuple(before), decision), [])
+
+    def add(self, rows: Sequence[dict]) -> None:
+        with open(self.path, "a") as sink:
+            for row in rows:
+                known = self.entries.get(row["key"])
+                if known is not None:
+                    same = (known["success"], known["time"]) == (row["success"], row["time"])
+                    self.mismatches += not same
+                    continue
+                sink.write(json.dumps(row, sort_keys=True) + "\n")
+                self._index(row)
+            sink.flush()
+            os.fsync(sink.fileno())
+
+
+def match(store: PathStore, sha: str, before: Sequence[str], decision: str, regrasp: str | None):
+    """The stored attempt a policy's decision leads to: the one without a re-observation, or the one
+    whose re-observation plan is ``regrasp`` (the policy's own at the stored re-observation state)."""
+    for row in store.candidates(sha, before, decision):
+        if row["regrasp"] is None or row["regrasp"]["plan"] == regrasp:
+            return row
+    return None
+
+
+class ObservationStore:
+    """Policy inputs at decision points, one ``.npy`` per (state, sight, variant, input kind), and
+    beside it a JSON of what the decision needs besides (each primitive's plan token, the head's
+    score), written atomically."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+
+    @staticmethod
+    def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
+        text = f"{path_key(sha, tokens)}|{seen}|{variant.name}:{variant.light_scale}|{inputs}"
+        return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+    def get(self, key: str) -> np.ndarray | None:
+        path = self.folder / f"{key}.npy"
+        return np.load(path, allow_pickle=False) if path.exists() else None
+
+    def meta(self, key: str) -> dict | None:
+        path = self.folder / f"{key}.json"
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def put(self, key: str, value: np.ndarray | None, meta: dict | None = None) -> None:
+        import io
+
+        if meta is not None:
+            atomic_write(self.folder / f"{key}.json", json.dumps(meta, sort_keys=True).encode())
+        if value is not None:
+            buffer = io.BytesIO()
+            np.save(buffer, value, allow_pickle=False)
+            atomic_write(self.folder / f"{key}.npy", buffer.getvalue())
