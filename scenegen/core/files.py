@@ -99,17 +99,6 @@ def int_field(config: dict, key: str, folder: Path, low: int, high: int) -> int:
     return value
 
 
-def load_weights(model, folder: Path, remedy: str) -> None:
-    """Load ``folder``'s model.safetensors into ``model``; CheckpointError naming the file otherwise."""
-    from safetensors.torch import load_file
-
-    path = Path(folder) / "model.safetensors"
-    try:
-        model.load_state_dict(load_file(str(path)))
-    except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
-        raise checkpoint_error(path, exc, remedy) from None
-
-
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__

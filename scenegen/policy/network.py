@@ -111,11 +111,12 @@ class PrimitivePolicy(nn.Module):
     @classmethod
     def load(cls, folder: Path) -> PrimitivePolicy:
         """The policy of a checkpoint folder; CheckpointError (one line, naming the file) otherwise."""
+        from safetensors.torch import load_file
+
         from scenegen.core.files import (
             CheckpointError,
             checkpoint_error,
             int_field,
-            load_weights,
             names_field,
             read_checkpoint_config,
         )
@@ -129,7 +130,10 @@ class PrimitivePolicy(nn.Module):
             model = cls(primitives, width, config.get("inputs", "rgbd"))
         except (KeyError, TypeError, ValueError, AssertionError, RuntimeError) as exc:
             raise checkpoint_error(folder / "config.json", exc, remedy) from None
-        load_weights(model, folder, remedy)
+        try:
+            model.load_state_dict(load_file(str(folder / "model.safetensors")))
+        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         training = config.get("training", {})
         coverage = training.get("coverage", []) if isinstance(training, dict) else None
         if not isinstance(coverage, list) or not all(_coverage_cell(cell) for cell in coverage):

@@ -222,14 +222,19 @@ class CandidatePicker:
     threshold = 0.5
 
     def __init__(self, folder: Path):
-        from scenegen.core.files import int_field, load_weights, names_field, read_checkpoint_config
+        from safetensors.torch import load_file
+
+        from scenegen.core.files import checkpoint_error, int_field, names_field, read_checkpoint_config
 
         folder = Path(folder)
         remedy = "train one with `scenegen retrieval train --out DIR`"
         config = read_checkpoint_config(folder, "retrieval head", remedy)
         categories = names_field(config, "categories", folder, "category")
         self.model = CandidateClassifier(categories, int_field(config, "width", folder, 2, 256))
-        load_weights(self.model, folder, remedy)
+        try:
+            self.model.load_state_dict(load_file(str(folder / "model.safetensors")))
+        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         self.model.eval()
 
     def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:

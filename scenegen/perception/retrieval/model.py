@@ -97,10 +97,12 @@ class RetrievalHead(nn.Module):
     @classmethod
     def load(cls, folder: Path) -> RetrievalHead:
         """The head of a checkpoint folder; CheckpointError (one line, naming the file) otherwise."""
+        from safetensors.torch import load_file
+
         from scenegen.core.files import (
             CheckpointError,
+            checkpoint_error,
             int_field,
-            load_weights,
             names_field,
             read_checkpoint_config,
         )
@@ -113,7 +115,10 @@ class RetrievalHead(nn.Module):
         model = cls(
             names_field(config, "categories", folder, "category"), int_field(config, "width", folder, 2, 256)
         )
-        load_weights(model, folder, remedy)
+        try:
+            model.load_state_dict(load_file(str(folder / "model.safetensors")))
+        except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+            raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         model.trained_on = config.get("training", {})
         return model.eval()
 
