@@ -233,3 +233,32 @@ def close_quietly(env) -> None:
         env.close()
     except Exception:  # noqa: BLE001 - EGL's own errors at teardown
         pass
+
+
+# ------------------------------------------------------------------------- a worker process's environments
+_WORKER_ENVS: dict[str, SceneEnv] = {}
+
+
+def worker_env(scene, **options) -> SceneEnv:
+    """This process's environment made with ``options`` (one per distinct set, made at first use,
+    closed at exit once :func:`init_worker` ran); the caller resets it into its scene."""
+    key = repr(sorted(options.items()))
+    if key not in _WORKER_ENVS:
+        _WORKER_ENVS[key] = SceneEnv(scene, **options)
+    return _WORKER_ENVS[key]
+
+
+def init_worker() -> None:
+    """A process that renders: EGL unless told otherwise, its environments closed before EGL's
+    teardown at exit."""
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    close_at_exit(close_worker_envs)
+
+
+def close_worker_envs() -> None:
+    """Close this process's environments (at exit, or when a single-process run is done)."""
+    for env in _WORKER_ENVS.values():
+        close_quietly(env)
+    _WORKER_ENVS.clear()

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import dataclasses
 import multiprocessing
-import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -49,38 +48,23 @@ from scenegen.policy.failures import attempt_cause, attempt_features, out_of_tim
 from scenegen.policy.labels import CAMERA_SIZE, CAMERAS, HORIZON, scene_sha256, target_category
 from scenegen.schema.condition import RARE_TAGS
 
+
 # ------------------------------------------------------------------------------------------- workers
-_ENV = None
-
-
 def _env(scene: EnvScene):
-    global _ENV
-    if _ENV is None:
-        from scenegen.env.robosuite_env import SceneEnv
+    from scenegen.env.robosuite_env import worker_env
 
-        _ENV = SceneEnv(
-            scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
-        )
-    return _ENV
+    return worker_env(
+        scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
+    )
 
 
 def _init_worker() -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     import torch
 
+    from scenegen.env.robosuite_env import init_worker
+
     torch.set_num_threads(1)
-    from scenegen.env.robosuite_env import close_at_exit
-
-    close_at_exit(_close_env)
-
-
-def _close_env() -> None:
-    global _ENV
-    if _ENV is not None:
-        from scenegen.env.robosuite_env import close_quietly
-
-        close_quietly(_ENV)
-        _ENV = None
+    init_worker()
 
 
 _PERCEPTIONS: dict[str, object] = {}

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import io
-import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,34 +89,19 @@ def frames_of(obs: dict, cameras: Sequence[str] = CAMERAS) -> Frames:
 
 
 # ------------------------------------------------------------------------------------------- workers
-_ENV = None
-
-
 def _init_worker() -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from scenegen.env.robosuite_env import close_at_exit
+    from scenegen.env.robosuite_env import init_worker
 
-    close_at_exit(_close_env)
-
-
-def _close_env() -> None:
-    global _ENV
-    if _ENV is not None:
-        from scenegen.env.robosuite_env import close_quietly
-
-        close_quietly(_ENV)
-        _ENV = None
+    init_worker()
 
 
 def _render(scene: EnvScene) -> Frames:
     """The settled state's frames of ``scene`` in this process's environment."""
-    global _ENV
-    if _ENV is None:
-        from scenegen.env.robosuite_env import SceneEnv
+    from scenegen.env.robosuite_env import worker_env
 
-        _ENV = SceneEnv(scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False)
-    _ENV.reset_to(scene)
-    return frames_of(_ENV.camera_observations())
+    env = worker_env(scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False)
+    env.reset_to(scene)
+    return frames_of(env.camera_observations())
 
 
 def scene_frames(
@@ -138,6 +122,8 @@ def scene_frames(
         for (key, _), frames in zip(missing, bar, strict=True):
             store.put(key, frames)
         if workers <= 1:
-            _close_env()
+            from scenegen.env.robosuite_env import close_worker_envs
+
+            close_worker_envs()  # made again on demand
     for key in keys:
         yield store.get(key)
