@@ -17,7 +17,6 @@ observation) it already holds, from that log or from an existing ``out``, and ru
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,41 +74,26 @@ def _row(job: Job, outcome) -> dict:
 
 
 # ------------------------------------------------------------------------------------------- workers
-_ENV = None
-
-
 def _init_worker() -> None:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     import torch
 
-    torch.set_num_threads(1)
-    from scenegen.env.robosuite_env import close_at_exit
+    from scenegen.env.robosuite_env import init_worker
 
-    close_at_exit(_close_worker_env)  # free the GL context before the interpreter goes
+    torch.set_num_threads(1)
+    init_worker()  # frees the GL context before the interpreter goes
 
 
 def _run(job: Job) -> dict:
     """Execute one primitive from the scene's settled state in this process's environment."""
-    global _ENV
-    from scenegen.env.robosuite_env import SceneEnv
+    from scenegen.env.robosuite_env import worker_env
     from scenegen.manipulation.rollout import run_primitive
 
-    if _ENV is None:
-        _ENV = SceneEnv(
-            job.scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
-        )
-    _ENV.reset_to(job.scene)
-    outcome, _ = run_primitive(_ENV, job.primitive, observation_kind=job.observation)
+    env = worker_env(
+        job.scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
+    )
+    env.reset_to(job.scene)
+    outcome, _ = run_primitive(env, job.primitive, observation_kind=job.observation)
     return _row(job, outcome)
-
-
-def _close_worker_env() -> None:
-    global _ENV
-    if _ENV is not None:
-        from scenegen.env.robosuite_env import close_quietly
-
-        close_quietly(_ENV)
-        _ENV = None
 
 
 # -------------------------------------------------------------------------------------------- label
@@ -354,7 +338,9 @@ def _execute(jobs: list[Job], workers: int, backend=None) -> Iterator[dict]:
         try:
             yield from map(_run, jobs)
         finally:
-            _close_worker_env()
+            from scenegen.env.robosuite_env import close_worker_envs
+
+            close_worker_envs()
         return
     yield from ordered_map(_run, jobs, workers, _init_worker, (), backend)
 
