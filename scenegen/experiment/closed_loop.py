@@ -101,6 +101,8 @@ def simulate(
     one store row per step of it (the sequence up to and including that primitive), keyed by the
     plans executed. A re-observation inside a primitive keeps its state (``regrasp.qpos``) and its
     plan, so that another head's plan there can be compared without simulating."""
+    import mujoco
+
     from scenegen.env.episodes import EpisodeRecorder
     from scenegen.manipulation.primitives import plan_top_grasp
     from scenegen.manipulation.rollout import run_primitive
@@ -119,7 +121,10 @@ def simulate(
     def look_again():
         obs, view = look(env, perception)
         plan = None if view is None else plan_top_grasp(view)
-        again.append({"qpos": data.qpos.tolist(), "plan": plan_digest(plan)})
+        # the frames show the kinematics computed before the last step's integration: keep that state
+        seen = data.qpos.copy()
+        mujoco.mj_integratePos(env.sim.model._model, seen, data.qvel, -env.sim.model._model.opt.timestep)
+        again.append({"qpos": seen.tolist(), "plan": plan_digest(plan)})
         return obs, view
 
     for k, name in enumerate(prefix):
