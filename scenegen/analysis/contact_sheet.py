@@ -10,6 +10,7 @@ import numpy as np
 from scenegen.core.files import OutsideRootError, confined
 from scenegen.store.batch import INDEX, StoreError, scene_dirs
 
+CONTACT_SHEET = "contact_sheet.png"  # the sheet's name inside the batch when no --out is given
 THUMB = (320, 240)  # width, height of one thumbnail
 LABEL_HEIGHT = 34
 
@@ -118,7 +119,7 @@ def contact_sheet(
     while len(tiles) % columns:
         tiles.append(blank)
     grid = np.vstack([np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)])
-    out = Path(out) if out else batch / "contact_sheet.png"
+    out = Path(out) if out else batch / CONTACT_SHEET
     out.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(out), grid):
         raise SheetError(f"{out}: cannot write the PNG")

@@ -5,12 +5,17 @@
   file (inside the manifest's folder, same digest).
 - :func:`audit_batch`: a batch directory: the checksum chain (every file a scene.json lists, every
   scene.json against its index row, the index, rejection log and recipe against the manifest), files
-  nobody lists, recounts, and then the whole source re-derived from the files and its realism checks
-  recomputed (scenegen/manifest/derive.py, realism_checks.py) and compared field by field, so that a
-  hand-edited threshold, sample count, origin or provenance field, or a consistently re-chained edit
-  of a scene, cannot pass.
+  nobody lists (at any depth: a top-level entry the writer does not make, such as a copied scene
+  folder or a ``.DS_Store``, is one), recounts, and then the whole source re-derived from the files and
+  its realism checks recomputed (scenegen/manifest/derive.py, realism_checks.py) and compared field by
+  field, so that a hand-edited threshold, sample count, origin or provenance field, or a consistently
+  re-chained edit of a scene, cannot pass.
+- :func:`audit_export_folder`: a WebDataset export folder: exactly ``export.json`` and the shards it
+  lists, each with its recorded sha256 (not wired into a manifest yet: a manifest names no exports).
+- :func:`audit_catalog_folder`: a user asset catalog folder: exactly ``catalog.yaml`` and the files its
+  entries reference, inside the folder, meshes with their recorded sha256 (to be wired in).
 
-Both report through ``audit.violation(where, check, message)`` / ``audit.warning``; malformed files
+All report through ``audit.violation(where, check, message)`` / ``audit.warning``; malformed files
 are violations, never tracebacks.
 """
 
@@ -20,7 +25,7 @@ import hashlib
 import json
 import math
 from collections import Counter
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import yaml
 
@@ -28,7 +33,7 @@ from scenegen.core.files import SCENE_ID
 from scenegen.manifest.derive import CHAINED_FILES, RECIPE_FILE, checksum_root
 from scenegen.manifest.io import inside
 from scenegen.manifest.schema import Source
-from scenegen.store.batch import ASSETS, INDEX, REJECTIONS
+from scenegen.store.batch import ASSETS, INDEX, MANIFEST, REJECTIONS, TIMINGS
 
 # Fields of a batch source that must equal the source re-derived from the batch's files.
 DERIVED_FIELDS = (
@@ -43,6 +48,10 @@ DERIVED_FIELDS = (
     "rendered",
 )
 REALISM_FIELDS = ("value", "threshold", "comparison", "status", "reference", "samples", "min_samples")
+# What a WebDataset export names its description (scenegen/export/scene_shards.py EXPORT_FILE; the
+# export family sits above the audit's, so the name is repeated here).
+WEBDATASET_DESCRIPTION = "export.json"
+CATALOG_STAGING = ".staging-"  # a catalog import in progress, or killed mid-way: not the catalog's
 
 
 def _rows(audit, where: str, path: Path) -> list[dict] | None:
@@ -180,6 +189,7 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
     for row in index:
         listed |= _scene(audit, where, source, batch, row)
     _unlisted(audit, where, batch, dirs, listed)
+    _unlisted_top_level(audit, where, batch)
     config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
     if config is not None:
         _rederive(audit, where, source, batch, config)
@@ -240,6 +250,138 @@ def _unlisted(audit, where: str, batch: Path, dirs: list[str], listed: set[Path]
                 audit.violation(
                     f"{where}: {path.relative_to(batch)}", "unlisted_file", "a file no scene.json lists"
                 )
+
+
+def _unlisted_top_level(audit, where: str, batch: Path) -> None:
+    """Top-level entries of a batch that its writer (store/batch.py, runner/pipeline.py) does not make:
+    anything but the chained files, the manifest, timings, ``_assets/``, ``scene_*`` folders (checked
+    against the index above) and the two views scenegen writes into a batch by default. Hidden entries
+    count: a finished batch holds no temporary file (a resumed run removes a killed one's)."""
+    from scenegen.analysis.contact_sheet import CONTACT_SHEET
+    from scenegen.data.coverage import CHART_NAME
+
+    files = {*CHAINED_FILES, MANIFEST, TIMINGS, CONTACT_SHEET, CHART_NAME}
+    for path in sorted(batch.iterdir()):
+        if path.name.startswith("scene_") and path.is_dir():
+            continue
+        expected = path.is_dir() if path.name == ASSETS else path.name in files and path.is_file()
+        if not expected:
+            audit.violation(f"{where}: {path.name}", "unlisted_file", "not a file or folder a batch holds")
+        elif not inside(path, batch):
+            audit.violation(f"{where}: {path.name}", "location", "a link out of the batch")
+
+
+def _unlisted_under(audit, where: str, folder: Path, accounted: set[PurePosixPath], ignored=()) -> None:
+    """Every entry under ``folder`` that is neither an ``accounted`` file (relative path) nor a folder
+    on the way to one is a violation naming its relative path; a folder holding nothing accounted for
+    is named once, not file by file. Top-level names in ``ignored`` are skipped; links are not followed."""
+    on_the_way = {parent for rel in accounted for parent in rel.parents}
+
+    def visit(directory: Path, at: PurePosixPath) -> None:
+        for path in sorted(directory.iterdir()):
+            rel = at / path.name
+            if rel in accounted or (at == PurePosixPath() and path.name in ignored):
+                continue
+            if rel in on_the_way and path.is_dir() and not path.is_symlink():
+                visit(path, rel)
+            else:
+                audit.violation(f"{where}: {rel}", "unlisted_file", "a file or folder nothing lists")
+
+    visit(folder, PurePosixPath())
+
+
+def audit_export_folder(audit, where: str, export: Path) -> None:
+    """A WebDataset export (``scenegen export --format webdataset``): its ``export.json`` lists every
+    shard with its sha256; a listed shard missing or changed, or any other file or folder, is a
+    violation. (A LeRobot export's ``meta/scenegen_export.json`` lists its source episodes, not its
+    files, so it cannot be audited file by file.)"""
+    description_file = export / WEBDATASET_DESCRIPTION
+    try:
+        shards = json.loads(description_file.read_text())["shards"]
+        assert isinstance(shards, dict) and all(isinstance(v, str) for v in shards.values())
+    except FileNotFoundError:
+        audit.violation(f"{where}: {WEBDATASET_DESCRIPTION}", "missing_file", "not a WebDataset export")
+        return
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        audit.violation(f"{where}: {WEBDATASET_DESCRIPTION}", "schema", "not a description with shards")
+        return
+    accounted = {PurePosixPath(WEBDATASET_DESCRIPTION)}
+    for name, sha in sorted(shards.items()):
+        path, at = export / name, f"{where}: {name}"
+        accounted.add(PurePosixPath(name))  # named once: a link out is a location, not also unlisted
+        if "/" in name or name in ("", ".", "..") or not inside(path, export):
+            audit.violation(at, "location", "a shard must be a file of the export folder")
+            continue
+        if not path.is_file():
+            audit.violation(at, "missing_file", f"listed in {WEBDATASET_DESCRIPTION} but missing")
+        elif audit.file_sha256(path) != sha:
+            audit.violation(at, "checksum", f"sha256 differs from {WEBDATASET_DESCRIPTION}'s")
+    _unlisted_under(audit, where, export, accounted)
+
+
+def _catalog_references(audit, where: str, catalog_file: Path) -> dict[str, str | None] | None:
+    """{relative path: expected sha256 or None} of every file a user catalog's entries reference
+    (``mesh`` with ``mesh_sha256``, ``parts.files``, ``texture``); None (and a violation) when
+    ``catalog_file`` is not a catalog."""
+    at = f"{where}: {catalog_file.name}"
+    try:
+        data = yaml.safe_load(catalog_file.read_text())
+    except FileNotFoundError:
+        audit.violation(at, "missing_file", "the catalog file is missing")
+        return None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        audit.violation(at, "schema", f"not readable YAML ({str(exc).splitlines()[0]})"[:300])
+        return None
+    assets = data.get("assets") if isinstance(data, dict) else None
+    if not isinstance(assets, list) or not isinstance(data.get("version"), int):
+        audit.violation(at, "schema", "not a catalog: a mapping with version and an assets list")
+        return None
+    references: dict[str, str | None] = {}
+    for i, asset in enumerate(assets):
+        parts = asset.get("parts") if isinstance(asset, dict) else None
+        files = parts.get("files") if isinstance(parts, dict) else None
+        texture = asset.get("texture") if isinstance(asset, dict) else None
+        if (
+            not isinstance(files, list)
+            or not all(isinstance(f, str) for f in [asset.get("mesh"), asset.get("mesh_sha256"), *files])
+            or not isinstance(texture, str | None)
+        ):
+            audit.violation(f"{at}: assets[{i}]", "schema", "needs mesh, mesh_sha256 and parts.files (texts)")
+            continue
+        for name in [*files, *([texture] if texture is not None else [])]:
+            references.setdefault(name, None)
+        references[asset["mesh"]] = asset["mesh_sha256"]
+    return references
+
+
+def audit_catalog_folder(audit, where: str, catalog_file: Path) -> None:
+    """A user asset catalog: the folder of ``catalog_file`` (``catalog.yaml``) holds that file and
+    exactly the files its entries reference. A reference that is absolute, climbs out with ``..`` or
+    leads out through a link is a ``location`` violation; a missing one ``missing_file``; a mesh whose
+    sha256 is not its ``mesh_sha256`` ``checksum``; any other file or folder ``unlisted_file``, except
+    top-level ``.staging-*`` folders (an import in progress, or killed mid-way)."""
+    folder = catalog_file.parent
+    references = _catalog_references(audit, where, catalog_file)
+    if references is None:
+        return
+    accounted = {PurePosixPath(catalog_file.name)}
+    for name, sha in sorted(references.items()):
+        rel, path, at = PurePosixPath(name), folder / name, f"{where}: {name}"
+        accounted.add(rel)  # PurePosixPath drops "." parts ("./a.obj" is "a.obj"); a link out is named once
+        climbs = rel.is_absolute() or ".." in rel.parts or "\\" in name
+        if not rel.parts or climbs or not inside(path, folder):
+            audit.violation(at, "location", "a catalog may reference only files inside its folder")
+            continue
+        if not path.is_file():
+            audit.violation(at, "missing_file", f"referenced by {catalog_file.name} but missing")
+        elif sha is not None and audit.file_sha256(path) != sha:
+            audit.violation(at, "checksum", "sha256 differs from the entry's mesh_sha256")
+    staging = {
+        p.name
+        for p in folder.iterdir()
+        if p.name.startswith(CATALOG_STAGING) and p.is_dir() and not p.is_symlink()
+    }
+    _unlisted_under(audit, where, folder, accounted, ignored=staging)
 
 
 def _rederive(audit, where: str, source: Source, batch: Path, config) -> None:

@@ -23,7 +23,7 @@ from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.runner.config import PipelineConfig
 from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes
 from scenegen.schema.scene import SceneProposal
-from scenegen.store.batch import BatchStore, atomic_write
+from scenegen.store.batch import MANIFEST, TIMINGS, BatchStore, atomic_write
 from scenegen.tags.predicates import PREDICATE_VERSION
 
 STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
@@ -118,7 +118,7 @@ def run_batch(
         "stages": {k: round(v, 3) for k, v in seconds.items()},
         "proposals_this_run": proposals_done - done_before,
     }
-    atomic_write(out / "timings.json", json.dumps(timing, indent=1) + "\n")
+    atomic_write(out / TIMINGS, json.dumps(timing, indent=1) + "\n")
     return BatchSummary(
         out, accepted, proposals_done, rejections, seconds, accepted_seconds, accepted_cpu, wall
     )
@@ -134,7 +134,7 @@ def write_batch_manifest(out: Path, config: PipelineConfig, catalog_sha: str):
     source = batch_source(out, config, catalog_sha, PREDICATE_VERSION)
     source = source.model_copy(update={"realism": batch_realism(out, config, source.checksums.root)})
     manifest = Manifest(kind="batch", sources=[source])
-    write_manifest(out / "manifest.yaml", manifest)
+    write_manifest(out / MANIFEST, manifest)
     return manifest
 
 

@@ -379,3 +379,33 @@ def test_a_batch_added_twice_counts_twice_and_is_refused_by_the_audit(
     assert code == TAMPERED
     (dup,) = violations(report, "duplicate")
     assert dup["where"].endswith("two")
+
+
+# ---------------------------------------------------------------- entries nobody lists
+
+
+def test_a_scene_folder_copied_under_another_name_is_named(batch: Path, capsys):
+    shutil.copytree(batch / scene_ids(batch)[0], batch / "backup_scene")
+    code, report = run_audit(batch / "manifest.yaml", capsys)
+    assert code == TAMPERED
+    (bad,) = report["violations"]  # named once, as a folder, not file by file
+    assert bad["check"] == "unlisted_file" and bad["where"].endswith(": backup_scene"), bad
+
+
+@pytest.mark.parametrize("name", ["notes.txt", ".DS_Store"])
+def test_a_stray_file_at_the_top_of_a_batch_is_named(batch: Path, capsys, name):
+    (batch / name).write_bytes(b"left here")
+    code, report = run_audit(batch / "manifest.yaml", capsys)
+    assert code == TAMPERED
+    (bad,) = report["violations"]
+    assert bad["check"] == "unlisted_file" and bad["where"].endswith(f": {name}"), bad
+
+
+def test_the_views_scenegen_writes_into_a_batch_audit_clean(batch: Path, capsys):
+    """`scenegen show` and `scenegen coverage` write contact_sheet.png and coverage.png into the batch
+    by default (`make demo` shows, then audits): they are not stray files."""
+    assert main(["show", str(batch)]) == 0 and main(["coverage", str(batch)]) == 0
+    assert (batch / "contact_sheet.png").is_file() and (batch / "coverage.png").is_file()
+    capsys.readouterr()
+    code, report = run_audit(batch / "manifest.yaml", capsys)
+    assert code == 0 and report["ok"], report["violations"]
