@@ -90,7 +90,14 @@ FAMILIES = (
     ("runner", ("scenegen.runner",)),
     (
         "data tools",
-        ("scenegen.data", "scenegen.audit", "scenegen.assets.authoring"),
+        (
+            "scenegen.data",
+            "scenegen.audit",
+            "scenegen.assets.authoring",
+            "scenegen.assets.importer",
+            "scenegen.assets.meshes",
+            "scenegen.assets.measure",
+        ),
     ),
     ("env", ("scenegen.env",)),
     ("export", ("scenegen.export",)),

@@ -1,7 +1,13 @@
-"""The asset catalog (assets/catalog.yaml): what objects exist and their physical description.
+"""The asset catalogs: what objects exist and their physical description.
 
-Loading validates every entry against its files: the mesh exists, its sha256 matches, it parses into a
-watertight triangle mesh, and its convex parts exist. A broken asset is an error that names it.
+The bundled catalog (assets/catalog.yaml, written by authoring.py) and any user catalogs (written by
+``scenegen assets add``, importer.py) have one format; :func:`load_catalogs` merges them, bundled
+first, and refuses a name two of them use. Each asset keeps the folder of its own catalog
+(``Asset.root``), against which its file paths resolve.
+
+Loading validates every entry against its files: the mesh exists, its sha256 matches, it parses
+(triangles or polygons, with or without texture coordinates), an authored mesh is watertight, and its
+convex parts and texture exist. A broken asset is an error that names it.
 """
 
 from __future__ import annotations
@@ -9,7 +15,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import yaml
@@ -40,8 +48,23 @@ class ConvexParts(BaseModel):
     files: tuple[str, ...]
 
 
+class AssetSource(BaseModel):
+    """Where an imported asset came from and what the import did to it (absent for authored ones)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    file: str  # the user's file name, without its folder
+    sha256: str  # of the user's file
+    scale: float = Field(gt=0)  # applied to the file's coordinates to get metres
+    up: Literal["z", "y"]  # the file's up axis
+    notes: tuple[str, ...] = ()  # what the import repaired, merged, decimated or dropped
+
+
 class Asset(BaseModel):
-    """One object kind. Mesh frame = centre-of-mass frame, authored upright (+z up), metres."""
+    """One object kind. Mesh frame = centre-of-mass frame, upright (+z up), metres.
+
+    ``collision`` says how the convex parts were made: ``convex_decomposition`` (coacd on a watertight
+    mesh) or ``convex_hull`` (one part, for a mesh that could not be made watertight). ``root`` is the
+    folder of the asset's catalog, set by the loader (never read from the file)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
     name: str
@@ -57,18 +80,35 @@ class Asset(BaseModel):
     extents: tuple[float, float, float]  # axis-aligned size of the authored mesh (m)
     hull_to_visual_mm: float  # Hausdorff distance between convex parts and visual mesh
     resting_poses: tuple[RestingPose, ...] = Field(min_length=1)
+    texture: str | None = None  # a PNG mapped with the visual mesh's texture coordinates
+    collision: Literal["convex_decomposition", "convex_hull"] = "convex_decomposition"
+    source: AssetSource | None = None
+    root: Path | None = Field(default=None, exclude=True)
+
+    def file(self, relative: str) -> Path:
+        """A file of this asset (its mesh, a part, its texture), resolved in its catalog's folder."""
+        return (self.root or ASSETS_DIR) / relative
 
     def upright_pose(self) -> int | None:
         """Index of the upright resting pose, if the asset has one."""
         return next((i for i, p in enumerate(self.resting_poses) if p.upright), None)
 
 
+class CatalogFile(BaseModel):
+    """One catalog file a merged catalog was loaded from, for provenance."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    path: str
+    sha256: str
+
+
 class Catalog(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
     version: int
     assets: tuple[Asset, ...]
-    root: Path = ASSETS_DIR
-    sha256: str = ""  # of catalog.yaml, stamped into every scene's provenance
+    root: Path = ASSETS_DIR  # the (first) catalog's folder
+    sha256: str = ""  # of catalog.yaml (of the list of catalogs' sha256 when merged), in provenance
+    files: tuple[CatalogFile, ...] = ()  # the catalog files, in load order
 
     @functools.cached_property
     def by_name(self) -> dict[str, Asset]:
@@ -93,44 +133,99 @@ class Catalog(BaseModel):
         return self.root / relative
 
 
-@functools.lru_cache(maxsize=4)
+CATALOG_FILE = "catalog.yaml"
+
+
+def catalog_file(location: Path) -> Path:
+    """The catalog file a location names: the file itself, or ``catalog.yaml`` in a folder."""
+    location = Path(location)
+    return location / CATALOG_FILE if location.is_dir() or location.suffix == "" else location
+
+
+@functools.lru_cache(maxsize=16)
 def load_catalog(root: Path = ASSETS_DIR) -> Catalog:
-    """Load and validate ``root/catalog.yaml`` (cached per root)."""
-    root = Path(root)
-    catalog_file = root / "catalog.yaml"
-    if not catalog_file.is_file():
-        raise CatalogError(f"{catalog_file}: asset catalog missing; run `make assets` to build it")
-    raw_bytes = catalog_file.read_bytes()
-    raw = yaml.safe_load(raw_bytes)
+    """Load and validate one catalog: ``root/catalog.yaml``, or ``root`` itself when it is a file
+    (cached per location). Its assets' files resolve in the catalog file's folder."""
+    file = catalog_file(root)
+    bundled = file.resolve() == (ASSETS_DIR / CATALOG_FILE).resolve()
+    if not file.is_file():
+        remedy = "run `make assets` to build it" if bundled else "create it with `scenegen assets add`"
+        raise CatalogError(f"{file}: asset catalog missing; {remedy}")
+    raw_bytes = file.read_bytes()
     try:
-        catalog = Catalog(**raw, root=root, sha256=hashlib.sha256(raw_bytes).hexdigest())
-    except (ValidationError, TypeError) as exc:
-        raise CatalogError(f"{catalog_file}: invalid catalog: {exc}") from None
+        raw = yaml.safe_load(raw_bytes)
+        sha = hashlib.sha256(raw_bytes).hexdigest()
+        files = (CatalogFile(path=str(file), sha256=sha),)
+        catalog = Catalog(**raw, root=file.parent, sha256=sha, files=files)
+    except (ValidationError, TypeError, yaml.YAMLError) as exc:
+        reason = (str(exc).strip() or type(exc).__name__).splitlines()[0]
+        raise CatalogError(f"{file}: invalid catalog: {reason}") from None
+    assets = tuple(a.model_copy(update={"root": file.parent}) for a in catalog.assets)
+    catalog = catalog.model_copy(update={"assets": assets})
     for asset in catalog.assets:
-        _validate_files(catalog, asset)
+        validate_asset_files(asset)
     return catalog
 
 
-def _validate_files(catalog: Catalog, asset: Asset) -> None:
-    mesh_file = catalog.path(asset.mesh)
+def load_catalogs(locations: Sequence[Path] = ()) -> Catalog:
+    """The bundled catalog merged with the user catalogs at ``locations`` (each a catalog file or its
+    folder), in that order. No user catalog: the bundled catalog itself, sha256 and all. An asset
+    name used twice is an error naming both catalogs."""
+    bundled = load_catalog(ASSETS_DIR)
+    others = [load_catalog(Path(loc)) for loc in locations if catalog_file(loc).resolve() != _bundled_file()]
+    if not others:
+        return bundled
+    assets, owner = list(bundled.assets), dict.fromkeys(bundled.by_name, bundled.files[0].path)
+    for catalog in others:
+        for asset in catalog.assets:
+            if asset.name in owner:
+                raise CatalogError(
+                    f"asset {asset.name!r} is in both {owner[asset.name]} and {catalog.files[0].path}; "
+                    "rename one (scenegen assets add --name) or leave one catalog out"
+                )
+            owner[asset.name] = catalog.files[0].path
+            assets.append(asset)
+    files = (*bundled.files, *(c.files[0] for c in others))
+    sha = hashlib.sha256("\n".join(f.sha256 for f in files).encode()).hexdigest()
+    return Catalog(version=bundled.version, assets=tuple(assets), root=bundled.root, sha256=sha, files=files)
+
+
+def _bundled_file() -> Path:
+    return (ASSETS_DIR / CATALOG_FILE).resolve()
+
+
+def validate_asset_files(asset: Asset) -> None:
+    mesh_file = asset.file(asset.mesh)
     where = f"asset {asset.name!r} ({mesh_file})"
+    remedy = (
+        "rebuild with `make assets`" if asset.source is None else "import it again with `scenegen assets add`"
+    )
+    for relative in (asset.mesh, *asset.parts.files, *([asset.texture] if asset.texture else [])):
+        if not confined_to(asset.root or ASSETS_DIR, relative):
+            raise CatalogError(f"asset {asset.name!r}: {relative} is outside its catalog's folder; {remedy}")
     if not mesh_file.is_file():
-        raise CatalogError(f"{where}: mesh file missing; rebuild with `make assets`")
+        raise CatalogError(f"{where}: mesh file missing; {remedy}")
     data = mesh_file.read_bytes()
     if hashlib.sha256(data).hexdigest() != asset.mesh_sha256:
-        raise CatalogError(f"{where}: mesh sha256 does not match the catalog; rebuild with `make assets`")
+        raise CatalogError(f"{where}: mesh sha256 does not match the catalog; {remedy}")
     vertices, faces = read_obj(data, where)
-    if not _is_watertight(faces):
+    if asset.source is None and not _is_watertight(faces):
         raise CatalogError(f"{where}: mesh is not watertight (every edge must join two faces)")
     if parts_key(asset.mesh_sha256, asset.parts.coacd_version, asset.parts.params) != asset.parts.key:
-        raise CatalogError(
-            f"{where}: convex parts were made for another mesh or coacd version; rebuild with `make assets`"
-        )
+        raise CatalogError(f"{where}: convex parts were made for another mesh or coacd version; {remedy}")
     for part in asset.parts.files:
-        if not catalog.path(part).is_file():
-            raise CatalogError(
-                f"asset {asset.name!r}: convex part {part} missing; rebuild with `make assets`"
-            )
+        if not asset.file(part).is_file():
+            raise CatalogError(f"asset {asset.name!r}: convex part {part} missing; {remedy}")
+    if asset.texture and not asset.file(asset.texture).is_file():
+        raise CatalogError(f"asset {asset.name!r}: texture {asset.texture} missing; {remedy}")
+
+
+def confined_to(root: Path, relative: str) -> bool:
+    """Whether ``relative`` names a path inside ``root`` (no absolute path, no way out through ..)."""
+    if Path(relative).is_absolute():
+        return False
+    base = Path(root).resolve()
+    return (base / relative).resolve().is_relative_to(base)
 
 
 def parts_key(mesh_sha: str, coacd_version: str, params: dict) -> str:
@@ -140,14 +235,17 @@ def parts_key(mesh_sha: str, coacd_version: str, params: dict) -> str:
 
 
 def read_obj(data: bytes, where: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (V, 3) and triangle faces (F, 3, zero-based) of a plain OBJ file."""
+    """Vertices (V, 3) and triangle faces (F, 3, zero-based) of an OBJ file: polygons are split into
+    triangle fans; texture and normal indices (``f v/vt/vn``) and negative indices are understood."""
     vertices, faces = [], []
     try:
         for line in data.decode().splitlines():
             if line.startswith("v "):
                 vertices.append([float(v) for v in line.split()[1:4]])
             elif line.startswith("f "):
-                faces.append([int(v.split("/")[0]) - 1 for v in line.split()[1:4]])
+                corners = [int(v.split("/")[0]) for v in line.split()[1:]]
+                corners = [c - 1 if c > 0 else len(vertices) + c for c in corners]
+                faces.extend([corners[0], corners[i], corners[i + 1]] for i in range(1, len(corners) - 1))
     except (ValueError, UnicodeDecodeError) as exc:
         raise CatalogError(f"{where}: cannot parse OBJ: {exc}") from None
     v, f = np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64)
@@ -162,9 +260,17 @@ def _is_watertight(faces: np.ndarray) -> bool:
     return bool((counts == 2).all())
 
 
-@functools.lru_cache(maxsize=64)
-def convex_part_vertices(root: Path, asset_name: str) -> tuple[np.ndarray, ...]:
+def convex_part_vertices(catalog: Catalog, asset_name: str) -> tuple[np.ndarray, ...]:
     """Vertices (V, 3) of each convex part of an asset, in its body frame."""
-    catalog = load_catalog(root)
-    asset = catalog.get(asset_name)
-    return tuple(read_obj(catalog.path(f).read_bytes(), f)[0] for f in asset.parts.files)
+    return part_vertices(catalog.get(asset_name))
+
+
+def part_vertices(asset: Asset) -> tuple[np.ndarray, ...]:
+    """Vertices (V, 3) of each convex part of ``asset``, in its body frame (read once per process)."""
+    return part_vertices_at(asset.root or ASSETS_DIR, asset.parts.files)
+
+
+@functools.lru_cache(maxsize=256)
+def part_vertices_at(root: Path, files: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    """Vertices (V, 3) of each part file under ``root`` (cached per root and files)."""
+    return tuple(read_obj((root / f).read_bytes(), f)[0] for f in files)

@@ -3,7 +3,8 @@
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
 (generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
 audit, manifest add), ``export.py`` (export), ``policy.py`` (label, success-table, policy) and
-``experiment.py`` (experiment transfer); handlers call library functions with typed arguments.
+``experiment.py`` (experiment transfer), ``assets.py`` (assets add, list, show); handlers call
+library functions with typed arguments.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import data, experiment, export, generator, policy, retrieval, scenes
+from scenegen.cli import assets, data, experiment, export, generator, policy, retrieval, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -35,6 +36,7 @@ examples:
   scenegen manifest add runs/demo    # into data_manifest.yaml, after auditing it
   scenegen export runs/demo --format webdataset --out runs/demo-wds
   scenegen label runs/demo --out runs/labels.parquet   # every grasp primitive per scene (docs/policy.md)
+  scenegen assets add my/lemon.obj --category fruit   # your own objects (docs/assets.md)
   scenegen experiment transfer      # are generated rare scenes worth it in closed loop? (docs/transfer.md)
 """
 
@@ -45,6 +47,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     scenes.add_commands(sub)
+    assets.add_commands(sub)
     data.add_commands(sub)
     generator.add_commands(sub)
     export.add_commands(sub)

@@ -140,7 +140,7 @@ def object_top_surface(catalog: Catalog, obj: ObjectPlacement, tolerance: float 
     """The top of an object as a support: its highest convex-part vertices (within ``tolerance``),
     bounded by a rectangle in the object's yaw frame. A pointed or round top gives a tiny region."""
     rot = quat_to_matrix(obj.quat)
-    pts = np.concatenate(convex_part_vertices(catalog.root, obj.asset)) * obj.scale @ rot.T
+    pts = np.concatenate(convex_part_vertices(catalog, obj.asset)) * obj.scale @ rot.T
     top = pts[pts[:, 2] >= pts[:, 2].max() - tolerance]
     x_axis = rot[:, 0] if np.hypot(rot[0, 0], rot[1, 0]) > 1e-6 else rot[:, 1]
     yaw = math.atan2(x_axis[1], x_axis[0])

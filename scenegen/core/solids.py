@@ -12,12 +12,13 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import fcl
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from scenegen.assets.catalog import Catalog, convex_part_vertices
+from scenegen.assets.catalog import Catalog, part_vertices_at
 from scenegen.core.rotations import quat_to_matrix
 from scenegen.schema.scene import ObjectPlacement
 
@@ -76,8 +77,10 @@ class Solid:
 
 
 @functools.lru_cache(maxsize=256)
-def _convex_geometry(root, asset: str, part: int, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    return convex_hull(convex_part_vertices(root, asset)[part] * scale)
+def _convex_geometry(
+    root: Path, files: tuple[str, ...], part: int, scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    return convex_hull(part_vertices_at(root, files)[part] * scale)
 
 
 def convex_hull(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +102,7 @@ def object_solid(catalog: Catalog, obj: ObjectPlacement) -> Solid:
     pos = np.asarray(obj.position, float)
     pieces, corners, polytopes = [], [], []
     for i in range(len(asset.parts.files)):
-        verts, faces = _convex_geometry(catalog.root, obj.asset, i, obj.scale)
+        verts, faces = _convex_geometry(asset.root or catalog.root, asset.parts.files, i, obj.scale)
         pieces.append(fcl.CollisionObject(fcl_convex(verts, faces), fcl.Transform(rot, pos)))
         corners.append(verts @ rot.T + pos)
         polytopes.append(Polytope.of(corners[-1], faces))

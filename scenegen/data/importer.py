@@ -363,7 +363,7 @@ def _placements(
     objects = []
     for obj in raw:
         asset = catalog.get(obj.asset)
-        parts = np.concatenate(convex_part_vertices(catalog.root, obj.asset))
+        parts = np.concatenate(convex_part_vertices(catalog, obj.asset))
         bottom = float((parts @ quat_to_matrix(obj.quat).T)[:, 2].min() + obj.position[2])
         support, surface = _support(obj, bottom, surfaces)
         # Resting pose: the catalog pose nearest in orientation (yaw aside); the projection distance says

@@ -191,7 +191,16 @@ def _add_asset_meshes(spec: mujoco.MjSpec, catalog: Catalog, asset: Asset, scale
         visual, parts = _mesh_names(asset, scale)
         files = [asset.mesh, *asset.parts.files]
         for name, rel in zip([visual, *parts], files, strict=True):
-            spec.add_mesh(name=name, file=str(catalog.path(rel)), scale=[scale] * 3)
+            spec.add_mesh(name=name, file=str(asset.file(rel)), scale=[scale] * 3)
+    if asset.texture and spec.material(f"{asset.name}_material") is None:
+        # A 2D texture mapped with the visual mesh's texture coordinates (an imported asset's).
+        spec.add_texture(
+            name=f"{asset.name}_texture",
+            type=mujoco.mjtTexture.mjTEXTURE_2D,
+            file=str(asset.file(asset.texture)),
+        )
+        material = spec.add_material(name=f"{asset.name}_material")
+        material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = f"{asset.name}_texture"
 
 
 def _add_object(spec: mujoco.MjSpec, asset: Asset, obj: ObjectPlacement) -> None:
@@ -215,7 +224,8 @@ def _add_object(spec: mujoco.MjSpec, asset: Asset, obj: ObjectPlacement) -> None
         name=f"{obj.name}_visual",
         type=mujoco.mjtGeom.mjGEOM_MESH,
         meshname=visual,
-        rgba=asset.rgba,
+        rgba=[1.0, 1.0, 1.0, 1.0] if asset.texture else asset.rgba,  # a texture is drawn unshaded by rgba
+        material=f"{asset.name}_material" if asset.texture else "",
         group=VISUAL_GROUP,
         contype=0,
         conaffinity=0,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from scenegen.assets.authoring import coacd_version, hull_to_visual_distance
 from scenegen.assets.catalog import Catalog, CatalogError, load_catalog, parts_key
+from scenegen.assets.measure import coacd_version, hull_to_visual_distance
 
 REQUIRED_CATEGORIES = ("spoon", "fork", "knife", "mug", "bowl", "plate", "can", "bottle", "box")
 MAX_HULL_TO_VISUAL_MM = 3.0
@@ -168,6 +168,9 @@ def test_missing_part_file_is_a_catalog_error_naming_the_asset(tmp_path):
     assert asset.parts.files[-1] in str(info.value)
 
 
-def test_missing_catalog_file_says_how_to_build_it(tmp_path):
-    with pytest.raises(CatalogError, match="make assets"):
+def test_missing_catalog_file_says_how_to_build_it(tmp_path, monkeypatch):
+    with pytest.raises(CatalogError, match="scenegen assets add"):
         load_catalog(tmp_path / "nowhere")
+    monkeypatch.setattr("scenegen.assets.catalog.ASSETS_DIR", tmp_path / "bundled")
+    with pytest.raises(CatalogError, match="make assets"):
+        load_catalog(tmp_path / "bundled")

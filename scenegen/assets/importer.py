@@ -1,0 +1,330 @@
+"""``scenegen assets add``: a user's mesh becomes a verified asset of a user catalog.
+
+The import measures what the bundled assets carry (authoring.py): convex parts (coacd on the
+watertight solid, or its convex hull), resting poses with their probabilities (trimesh's quasi-static
+estimate, each kept only if a 1 s MuJoCo drop leaves it lying that way), mass and inertia, extents,
+the hull-to-visual distance; it keeps the mesh's texture or its colour.
+
+A user catalog is a folder: ``catalog.yaml`` and one folder per asset (``NAME/visual.obj``,
+``NAME/parts/KEY/part_*.obj``, ``NAME/texture.png``). An import is atomic: it stages everything in
+``.staging-PID-*`` inside the catalog's folder, moves the asset's folder into place, then replaces
+``catalog.yaml`` in one rename. A failed or killed import leaves ``catalog.yaml`` as it was; the next
+import removes a killed one's staging folder, and a folder it moved in without its catalog entry.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+
+from scenegen.assets.catalog import (
+    ASSETS_DIR,
+    CATALOG_FILE,
+    Asset,
+    CatalogError,
+    catalog_file,
+    load_catalog,
+    parts_key,
+    validate_asset_files,
+)
+from scenegen.assets.measure import (
+    coacd_version,
+    convex_parts,
+    hull_to_visual_distance,
+    inertial,
+    resting_poses,
+    sha256_bytes,
+)
+from scenegen.assets.meshes import UNITS, MeshImportError, UserMesh, obj_text, read_user_mesh
+from scenegen.core.files import sha256_file
+
+USER_CATALOG = Path("user_assets") / CATALOG_FILE  # relative to the working directory
+NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")
+STAGING_PREFIX = ".staging-"
+DEFAULT_DENSITY = 500.0  # kg/m^3, when neither --mass nor --density is given (a note says so)
+COACD_PARAMS = {"threshold": 0.03, "preprocess_mode": "off", "max_convex_hull": 16, "seed": 0}
+DROP_SECONDS, DROP_TILT_DEG = 1.0, 10.0  # a resting pose is kept if a drop tilts it less than this
+HEADER = "# Written by `scenegen assets add`; each asset's files are in the folder of its name.\n"
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    """What the user says about one mesh (``scenegen assets add --help``)."""
+
+    category: str
+    name: str | None = None
+    scale: float | None = None
+    units: str | None = None
+    mass: float | None = None  # kg
+    density: float | None = None  # kg/m^3
+    friction: float = 0.7
+    up: str = "z"
+    texture: Path | None = None
+    collision: str = "auto"  # auto: coacd on a watertight solid; hull: one convex part
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    asset: Asset
+    catalog: Path
+    notes: tuple[str, ...]
+    seconds: float
+
+
+def add_asset(
+    mesh_path: Path, options: ImportOptions, catalog: Path = USER_CATALOG, log=print
+) -> ImportResult:
+    """Import ``mesh_path`` into the user catalog ``catalog`` (a catalog.yaml or its folder; created
+    if missing). Raises MeshImportError (the file) or CatalogError (the catalog) with one line; on
+    any failure the catalog is as it was."""
+    start = time.perf_counter()
+    mesh_path, target = Path(mesh_path), catalog_file(catalog)
+    name = options.name or re.sub(r"[^a-z0-9_]", "_", mesh_path.stem.lower()).strip("_")
+    _check_names(mesh_path, name, options, target)
+    folder = target.parent
+    entries = _entries(target)
+    mesh = read_user_mesh(mesh_path, options.scale, options.units, options.up, options.texture)
+    notes = list(mesh.notes)
+    if options.collision == "hull" and mesh.collision != "convex_hull":
+        mesh.solid, mesh.collision = mesh.solid.convex_hull, "convex_hull"
+        notes.append("collision model: the convex hull (one part), as --collision hull asks")
+    folder.mkdir(parents=True, exist_ok=True)
+    _remove_dead_staging(folder)
+    stage = Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=folder))
+    try:
+        entry = _stage_asset(stage / name, name, mesh_path, mesh, options, notes, log)
+        asset = Asset(**entry).model_copy(update={"root": stage})
+        validate_asset_files(asset)
+        (stage / CATALOG_FILE).write_text(
+            HEADER + yaml.safe_dump({"version": 1, "assets": [*entries, entry]}, sort_keys=False, width=100)
+        )
+        leftover = folder / name
+        if leftover.exists():  # moved in by an import killed before its catalog entry was written
+            shutil.rmtree(leftover)
+            notes.append(f"removed {leftover}, left by an interrupted import")
+        os.rename(stage / name, folder / name)
+        os.replace(stage / CATALOG_FILE, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    load_catalog.cache_clear()
+    asset = load_catalog(target).get(name)
+    return ImportResult(asset, target, tuple(notes), time.perf_counter() - start)
+
+
+def _remove_dead_staging(folder: Path) -> None:
+    """Remove the staging folders of imports whose process is gone (killed mid-way)."""
+    for stage in folder.glob(f"{STAGING_PREFIX}*"):
+        pid = stage.name[len(STAGING_PREFIX) :].split("-")[0]
+        try:
+            os.kill(int(pid), 0)
+        except (ValueError, ProcessLookupError):
+            shutil.rmtree(stage, ignore_errors=True)
+        except PermissionError:
+            pass  # another user's live process
+
+
+def _check_names(mesh_path: Path, name: str, options: ImportOptions, target: Path) -> None:
+    if not NAME.match(name):
+        raise MeshImportError(
+            f"{mesh_path}: asset name {name!r} must be lowercase letters, digits and _ "
+            "(starting with a letter, at most 40); give one with --name"
+        )
+    if not NAME.match(options.category):
+        raise MeshImportError(
+            f"category {options.category!r} must be lowercase letters, digits and _ "
+            "(starting with a letter), e.g. --category fruit"
+        )
+    if target.resolve() == (ASSETS_DIR / CATALOG_FILE).resolve():
+        raise CatalogError(
+            f"{target}: the bundled catalog is written by `make assets` only; "
+            "import into a user catalog (--catalog user_assets/catalog.yaml)"
+        )
+    if options.mass is not None and options.density is not None:
+        raise MeshImportError(f"{mesh_path}: give --mass or --density, not both")
+    for label, value in (
+        ("--mass", options.mass),
+        ("--density", options.density),
+        ("--friction", options.friction),
+    ):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise MeshImportError(f"{mesh_path}: {label} {value} must be a positive number")
+    taken = {a.name: str(ASSETS_DIR / CATALOG_FILE) for a in load_catalog(ASSETS_DIR).assets}
+    if target.is_file():
+        taken |= {a.name: str(target) for a in load_catalog(target).assets}
+    if name in taken:
+        raise CatalogError(f"asset {name!r} is already in {taken[name]}; choose another with --name")
+
+
+def _entries(target: Path) -> list[dict]:
+    """The catalog's entries as written (an empty list for a new catalog)."""
+    if not target.is_file():
+        return []
+    raw = yaml.safe_load(target.read_text())
+    return list(raw.get("assets") or [])
+
+
+def _stage_asset(
+    out: Path, name: str, source: Path, mesh: UserMesh, options: ImportOptions, notes: list[str], log
+) -> dict:
+    """Write the asset's files under ``out`` (its folder) and return its catalog entry."""
+    (out / "parts").mkdir(parents=True)
+    visual_bytes = obj_text(mesh.visual, mesh.uv)
+    (out / "visual.obj").write_bytes(visual_bytes)
+    mesh_sha = sha256_bytes(visual_bytes)
+    texture = None
+    if mesh.texture is not None:
+        import cv2
+
+        cv2.imwrite(str(out / "texture.png"), mesh.texture[:, :, ::-1])
+        texture = f"{name}/texture.png"
+    params = {**COACD_PARAMS, "collision": mesh.collision}
+    key = parts_key(mesh_sha, coacd_version(), params)
+    parts = _parts(mesh, params, log)
+    (out / "parts" / key).mkdir()
+    files = []
+    for i, part in enumerate(parts):
+        (out / "parts" / key / f"part_{i:03d}.obj").write_bytes(obj_text(part))
+        files.append(f"{name}/parts/{key}/part_{i:03d}.obj")
+    density = options.density or (options.mass / mesh.solid.volume if options.mass else DEFAULT_DENSITY)
+    if options.mass is None and options.density is None:
+        notes.append(f"density {DEFAULT_DENSITY:g} kg/m^3 assumed: give --mass or --density")
+    poses, dropped = checked_resting_poses(mesh.solid, parts, density, options.friction)
+    if dropped:
+        notes.append(f"{dropped} resting pose(s) trimesh predicted fell over in a MuJoCo drop: left out")
+    return {
+        "name": name,
+        "category": options.category,
+        "mesh": f"{name}/visual.obj",
+        "mesh_sha256": mesh_sha,
+        "parts": {"key": key, "coacd_version": coacd_version(), "params": params, "files": files},
+        "density": round(float(density), 3),
+        **inertial(mesh.solid, density),
+        "friction": options.friction,
+        "rgba": list(mesh.rgba),
+        "extents": [round(float(e), 5) for e in mesh.solid.extents],
+        "hull_to_visual_mm": round(_hull_to_visual(mesh, parts) * 1000, 3),
+        "resting_poses": poses,
+        "texture": texture,
+        "collision": mesh.collision,
+        "source": {
+            "file": source.name,
+            "sha256": sha256_file(source),
+            "scale": float(options.scale or UNITS[options.units or "m"]),
+            "up": options.up,
+            "notes": notes,
+        },
+    }
+
+
+def _parts(mesh: UserMesh, params: dict, log) -> list[trimesh.Trimesh]:
+    """Convex parts of the solid: its hull, or coacd's parts (cached under the parts key of the
+    collision input in SCENEGEN_CACHE, default ~/.cache/scenegen/coacd)."""
+    if mesh.collision == "convex_hull":
+        return [mesh.solid.convex_hull]
+    solid_bytes = obj_text(mesh.solid)
+    coacd_params = {k: v for k, v in params.items() if k != "collision"}
+    cache = _cache_dir() / parts_key(sha256_bytes(solid_bytes), coacd_version(), coacd_params)
+    if cache.is_dir():
+        return [trimesh.load(p, process=False) for p in sorted(cache.glob("part_*.obj"))]
+    log(f"convex decomposition (coacd) of {len(mesh.solid.faces)} triangles: up to ~2 min on 2 cores")
+    solid = trimesh.load(trimesh.util.wrap_as_stream(solid_bytes), file_type="obj", process=False)
+    parts = convex_parts(solid, coacd_params)
+    tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=_cache_dir()))
+    for i, part in enumerate(parts):
+        (tmp / f"part_{i:03d}.obj").write_bytes(obj_text(part))
+    try:
+        os.rename(tmp, cache)
+    except OSError:  # another import filled it meanwhile
+        shutil.rmtree(tmp, ignore_errors=True)
+    return [trimesh.load(p, process=False) for p in sorted(cache.glob("part_*.obj"))]
+
+
+def _cache_dir() -> Path:
+    root = Path(os.environ.get("SCENEGEN_CACHE", Path.home() / ".cache" / "scenegen")) / "coacd"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def _hull_to_visual(mesh: UserMesh, parts: list[trimesh.Trimesh]) -> float:
+    """Hausdorff distance (m) between the parts and the solid; for a hull, from the hull's surface
+    to the visual surface (how far the collision model stands off the object)."""
+    if mesh.collision == "convex_decomposition":
+        return hull_to_visual_distance(mesh.solid, parts, n=5000)
+    points, _ = trimesh.sample.sample_surface(parts[0], 5000, seed=0)
+    return float(trimesh.proximity.closest_point(mesh.visual, points)[1].max())
+
+
+def checked_resting_poses(
+    solid: trimesh.Trimesh, parts: list[trimesh.Trimesh], density: float, friction: float
+) -> tuple[list[dict], int]:
+    """trimesh's resting poses of ``solid`` (measure.resting_poses), each kept only if the convex
+    parts dropped 2 mm onto a plane in that pose lie the same way after DROP_SECONDS (the body's up
+    axis tilts less than DROP_TILT_DEG). Returns the kept poses and how many were dropped."""
+    import mujoco
+
+    poses = resting_poses(solid)
+    model = _drop_model(parts, inertial(solid, density), friction)
+    data = mujoco.MjData(model)
+    kept = []
+    for pose in poses:
+        mujoco.mj_resetData(model, data)
+        data.qpos[:3] = [0.0, 0.0, pose["height"] + 0.002]
+        data.qpos[3:7] = pose["quat"]
+        for _ in range(int(DROP_SECONDS / model.opt.timestep)):
+            mujoco.mj_step(model, data)
+        before, after = np.zeros(9), np.zeros(9)
+        mujoco.mju_quat2Mat(before, np.asarray(pose["quat"], float))
+        mujoco.mju_quat2Mat(after, data.qpos[3:7])
+        up_before, up_after = before.reshape(3, 3)[2], after.reshape(3, 3)[2]  # world z in body axes
+        tilt = np.degrees(np.arccos(np.clip(up_before @ up_after, -1.0, 1.0)))
+        if tilt < DROP_TILT_DEG:
+            kept.append(pose)
+    if not kept:  # nothing survived: keep the most likely pose rather than none (noted by the caller)
+        kept = poses[:1]
+    return kept, len(poses) - len(kept)
+
+
+def _drop_model(parts: list[trimesh.Trimesh], mass: dict, friction: float):
+    import mujoco
+
+    from scenegen.sim.world import CONTACT_OPTIONS, OBJECT_CONDIM, TIMESTEP
+
+    spec = mujoco.MjSpec()
+    spec.option.timestep = TIMESTEP
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    spec.option.impratio = CONTACT_OPTIONS["impratio"]
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[1, 1, 0.1], friction=[0.8, 0.005, 0.0001])
+    body = spec.worldbody.add_body(name="object")
+    body.add_freejoint()
+    inertia = np.asarray(mass["inertia"])
+    body.explicitinertial = True
+    body.mass = mass["mass"]
+    body.fullinertia = [
+        inertia[0, 0],
+        inertia[1, 1],
+        inertia[2, 2],
+        inertia[0, 1],
+        inertia[0, 2],
+        inertia[1, 2],
+    ]
+    for i, part in enumerate(parts):
+        spec.add_mesh(name=f"part{i}", uservert=np.asarray(part.vertices, float).ravel().tolist())
+        body.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=f"part{i}",
+            mass=0,
+            condim=OBJECT_CONDIM,
+            margin=CONTACT_OPTIONS["object_margin"],
+            friction=[friction, CONTACT_OPTIONS["torsional_friction"], CONTACT_OPTIONS["rolling_friction"]],
+        )
+    return spec.compile()
