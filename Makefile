@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -31,6 +31,23 @@ demo: setup  ## generate and render the demo batch into runs/demo (replaces an e
 	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo --workers 2
 	$(BIN)/scenegen show runs/demo
 	$(BIN)/scenegen audit runs/demo/manifest.yaml
+
+ROBOSUITE_OBJECTS = $(shell $(BIN)/python -c "import robosuite, os; print(os.path.dirname(robosuite.__file__))" 2>/dev/null)/models/assets
+RS_CATALOG = runs/robosuite_objects/catalog.yaml
+RS_ADD = $(BIN)/scenegen assets add --category grocery --catalog $(RS_CATALOG)
+
+robosuite-objects: setup  ## import robosuite's six object meshes as a user catalog, generate a batch with them, audit it (docs/assets.md)
+	rm -rf runs/robosuite_objects runs/robosuite_batch
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/bottle.obj --name rs_bottle --mass 0.3 --texture $(ROBOSUITE_OBJECTS)/textures/glass.png
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/bread.obj --name rs_bread --mass 0.1 --texture $(ROBOSUITE_OBJECTS)/textures/bread.png
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/can.obj --name rs_can --mass 0.35 --texture $(ROBOSUITE_OBJECTS)/textures/soda.png
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/cereal.obj --name rs_cereal --mass 0.4 --texture $(ROBOSUITE_OBJECTS)/textures/cereal.png
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/lemon.obj --name rs_lemon --mass 0.1 --texture $(ROBOSUITE_OBJECTS)/textures/lemon.png
+	$(RS_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/milk.obj --name rs_milk --mass 0.5 --texture $(ROBOSUITE_OBJECTS)/textures/ceramic.png
+	$(BIN)/scenegen assets show rs_bottle rs_bread rs_can rs_cereal rs_lemon rs_milk --catalog $(RS_CATALOG) --out runs/robosuite_objects/asset_sheet.png
+	$(BIN)/scenegen generate pipelines/robosuite_objects.yaml --out runs/robosuite_batch --workers 2
+	$(BIN)/scenegen show runs/robosuite_batch
+	$(BIN)/scenegen audit runs/robosuite_batch/manifest.yaml
 
 test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included)
 	$(BIN)/python -m pytest -q

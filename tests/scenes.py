@@ -168,3 +168,24 @@ def copy_batch(batch: Path, to: Path) -> Path:
     shutil.copytree(batch, to, ignore=shutil.ignore_patterns("_assets"))
     shutil.copytree(batch / "_assets", to / "_assets", copy_function=os.link)
     return to
+
+
+def resimulated(scene_xml: Path, seconds: float = 2.0) -> tuple[float, float]:
+    """Re-load a stored scene.xml with plain MuJoCo calls (from wherever the caller stands), reset it to
+    its ``settled`` keyframe and simulate it passively: (deepest contact penetration at the keyframe,
+    largest displacement of a free object after ``seconds``), both in metres."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_path(str(scene_xml))
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, model.key("settled").id)
+    mujoco.mj_forward(model, data)
+    deepest = max((-data.contact[k].dist for k in range(data.ncon)), default=0.0)
+    free = [
+        model.jnt_qposadr[j] for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+    ]
+    start = {adr: data.qpos[adr : adr + 3].copy() for adr in free}
+    for _ in range(int(round(seconds / model.opt.timestep))):
+        mujoco.mj_step(model, data)
+    moved = max((float(np.linalg.norm(data.qpos[a : a + 3] - p)) for a, p in start.items()), default=0.0)
+    return float(deepest), moved

@@ -66,7 +66,7 @@ MMD_PERMUTATIONS = 200
 
 
 @functools.lru_cache(maxsize=1)
-def _catalog_categories() -> tuple[str, ...]:
+def feature_categories() -> tuple[str, ...]:
     from scenegen.assets.catalog import load_catalog
 
     return load_catalog().categories
@@ -75,7 +75,7 @@ def _catalog_categories() -> tuple[str, ...]:
 def feature_names(categories: Sequence[str] | None = None) -> tuple[str, ...]:
     """Names of the entries of :func:`layout_features`, in order; ``categories`` defaults to the
     asset catalog's (sorted) categories."""
-    categories = _catalog_categories() if categories is None else tuple(categories)
+    categories = feature_categories() if categories is None else tuple(categories)
     return (*_HEAD, *(f"count_{c}" for c in categories), *_TAIL)
 
 
@@ -138,7 +138,7 @@ def layout_features(row: dict, categories: Sequence[str] | None = None) -> np.nd
       MuJoCo gets (unitless).
     - ``has_<kind>``: whether a furniture piece of that kind is present (0/1).
     """
-    categories = _catalog_categories() if categories is None else tuple(categories)
+    categories = feature_categories() if categories is None else tuple(categories)
     objects = row["objects"]
     names = [o["name"] for o in objects]
     target = [o for o in objects if o["name"] == row["target"]]
@@ -185,7 +185,7 @@ def layout_features(row: dict, categories: Sequence[str] | None = None) -> np.nd
 
 def feature_matrix(rows: Sequence[dict], categories: Sequence[str] | None = None) -> np.ndarray:
     """Features of many layouts, (N, D) float64, one row per layout."""
-    categories = _catalog_categories() if categories is None else tuple(categories)
+    categories = feature_categories() if categories is None else tuple(categories)
     if not rows:
         return np.zeros((0, len(feature_names(categories))))
     return np.stack([layout_features(row, categories) for row in rows])
@@ -465,7 +465,7 @@ def power(
         raise ValueError(
             f"power needs at least {2 * folds} rows (two halves of {folds} folds); got {len(rows)}"
         )
-    categories = _catalog_categories()
+    categories = feature_categories()
     half = len(rows) // 2
     detected = 0
     for trial in range(n_trials):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenegen.analysis.realism import _catalog_categories, feature_matrix, load_rows, record_row
+from scenegen.analysis.realism import feature_categories, feature_matrix, load_rows, record_row
 
 _KNN_CHUNK = 512  # query rows per distance block: 512 x 8,000 float64 is 33 MB
 
@@ -61,7 +61,7 @@ class SceneScorer:
     @classmethod
     def from_rows(cls, rows: Sequence[dict], k: int = 5, categories: Sequence[str] | None = None):
         """A scorer from reference layout rows (reference Parquet rows, e.g. :func:`load_rows`)."""
-        categories = _catalog_categories() if categories is None else tuple(categories)
+        categories = feature_categories() if categories is None else tuple(categories)
         if k < 1:
             raise ValueError(f"k={k}: the score needs k >= 1 neighbours")
         if len(rows) < k + 1:
@@ -127,7 +127,7 @@ def scorer_cache_path(reference: Path, k: int) -> Path:
     from scenegen.paths import cache_dir
 
     key = hashlib.sha256()
-    for part in (sha256_file(reference), str(k), ",".join(_catalog_categories())):
+    for part in (sha256_file(reference), str(k), ",".join(feature_categories())):
         key.update(part.encode() + b"\0")
     for module in (realism.__file__, __file__):
         key.update(Path(module).read_bytes())

@@ -12,10 +12,12 @@ convex parts and texture exist. A broken asset is an error that names it.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Literal
 
@@ -83,6 +85,9 @@ class Asset(BaseModel):
     texture: str | None = None  # a PNG mapped with the visual mesh's texture coordinates
     collision: Literal["convex_decomposition", "convex_hull"] = "convex_decomposition"
     source: AssetSource | None = None
+    # A round object (every resting pose at about the same height, a lemon): every pose is upright
+    # and ``toppled`` never holds for it, whatever way it has rolled.
+    orientation_free: bool = False
     root: Path | None = Field(default=None, exclude=True)
 
     def file(self, relative: str) -> Path:
@@ -156,11 +161,11 @@ def load_catalog(root: Path = ASSETS_DIR) -> Catalog:
         raw = yaml.safe_load(raw_bytes)
         sha = hashlib.sha256(raw_bytes).hexdigest()
         files = (CatalogFile(path=str(file), sha256=sha),)
-        catalog = Catalog(**raw, root=file.parent, sha256=sha, files=files)
+        catalog = Catalog(**raw, root=file.parent.resolve(), sha256=sha, files=files)
     except (ValidationError, TypeError, yaml.YAMLError) as exc:
         reason = (str(exc).strip() or type(exc).__name__).splitlines()[0]
         raise CatalogError(f"{file}: invalid catalog: {reason}") from None
-    assets = tuple(a.model_copy(update={"root": file.parent}) for a in catalog.assets)
+    assets = tuple(a.model_copy(update={"root": catalog.root}) for a in catalog.assets)  # absolute
     catalog = catalog.model_copy(update={"assets": assets})
     for asset in catalog.assets:
         validate_asset_files(asset)
@@ -188,6 +193,28 @@ def load_catalogs(locations: Sequence[Path] = ()) -> Catalog:
     files = (*bundled.files, *(c.files[0] for c in others))
     sha = hashlib.sha256("\n".join(f.sha256 for f in files).encode()).hexdigest()
     return Catalog(version=bundled.version, assets=tuple(assets), root=bundled.root, sha256=sha, files=files)
+
+
+_ACTIVE: ContextVar[tuple[str, ...]] = ContextVar("scenegen_user_catalogs", default=())
+
+
+@contextlib.contextmanager
+def using_catalogs(locations: Sequence[Path | str]) -> Iterator[Catalog]:
+    """Within the block, :func:`active_catalog` is the bundled catalog merged with ``locations``:
+    what a recipe's ``catalogs`` key names while the recipe is validated (its target category, the
+    assets its proposer names). Yields that catalog."""
+    catalog = load_catalogs([Path(p) for p in locations])
+    token = _ACTIVE.set(tuple(str(p) for p in locations))
+    try:
+        yield catalog
+    finally:
+        _ACTIVE.reset(token)
+
+
+def active_catalog() -> Catalog:
+    """The catalog requests are validated against: the bundled one, merged with the user catalogs of
+    an enclosing :func:`using_catalogs` block."""
+    return load_catalogs([Path(p) for p in _ACTIVE.get()])
 
 
 def _bundled_file() -> Path:

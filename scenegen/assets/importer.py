@@ -53,6 +53,7 @@ STAGING_PREFIX = ".staging-"
 DEFAULT_DENSITY = 500.0  # kg/m^3, when neither --mass nor --density is given (a note says so)
 COACD_PARAMS = {"threshold": 0.03, "preprocess_mode": "off", "max_convex_hull": 16, "seed": 0}
 DROP_SECONDS, DROP_TILT_DEG = 1.0, 10.0  # a resting pose is kept if a drop tilts it less than this
+ROUND_HEIGHTS, ROUND_EXTENTS = 0.1, 1.25  # a round object: see _upright_by_geometry
 HEADER = "# Written by `scenegen assets add`; each asset's files are in the folder of its name.\n"
 
 
@@ -200,6 +201,7 @@ def _stage_asset(
     poses, dropped = checked_resting_poses(mesh.solid, parts, density, options.friction)
     if dropped:
         notes.append(f"{dropped} resting pose(s) trimesh predicted fell over in a MuJoCo drop: left out")
+    orientation_free = _upright_by_geometry(poses, mesh.solid.extents, notes)
     return {
         "name": name,
         "category": options.category,
@@ -215,6 +217,7 @@ def _stage_asset(
         "resting_poses": poses,
         "texture": texture,
         "collision": mesh.collision,
+        "orientation_free": orientation_free,
         "source": {
             "file": source.name,
             "sha256": sha256_file(source),
@@ -223,6 +226,27 @@ def _stage_asset(
             "notes": notes,
         },
     }
+
+
+def _upright_by_geometry(poses: list[dict], extents, notes: list[str]) -> bool:
+    """Settle which resting poses count as upright where the file's +z does not (poses are changed in
+    place); returns whether the object is round. Round: about as long as wide as high (ROUND_EXTENTS)
+    and every pose's centre of mass within ROUND_HEIGHTS of the others' (a lemon, an apple), so every
+    pose is upright and none toppled. Otherwise, if no pose keeps +z up, the most likely pose (and
+    its mirror images) counts as upright."""
+    heights = [p["height"] for p in poses]
+    compact = max(extents) <= ROUND_EXTENTS * min(extents)
+    if compact and max(heights) <= (1 + ROUND_HEIGHTS) * min(heights):
+        for pose in poses:
+            pose["upright"] = True
+        notes.append("round (its resting poses all stand about as high): every pose upright, never toppled")
+        return True
+    if not any(p["upright"] for p in poses):
+        best = max(p["probability"] for p in poses)
+        for pose in poses:
+            pose["upright"] = pose["probability"] >= best - 0.01
+        notes.append("no resting pose keeps its +z up: its most likely pose counts as upright (--up?)")
+    return False
 
 
 def _parts(mesh: UserMesh, params: dict, log) -> list[trimesh.Trimesh]:

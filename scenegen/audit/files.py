@@ -127,13 +127,13 @@ def audit_table(audit, where: str, source: Source, path: Path) -> None:
 
 def _recipe_digest(audit, where: str, recipe: Path, sha256: str):
     """The recipe file at ``recipe``, validated, its digest compared with ``sha256``; None if bad."""
-    from scenegen.runner.config import PipelineConfig
+    from scenegen.runner.config import validate_config
 
     if not inside(recipe, audit.folder):
         audit.violation(where, "provenance", f"pipeline file {recipe} lies outside {audit.folder}")
         return None
     try:
-        config = PipelineConfig.model_validate(yaml.safe_load(recipe.read_text()))
+        config = validate_config(yaml.safe_load(recipe.read_text()))
     except FileNotFoundError:
         audit.violation(where, "provenance", f"pipeline file {recipe.name} is missing")
         return None
@@ -192,6 +192,10 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
     _unlisted_top_level(audit, where, batch)
     config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
     if config is not None:
+        from scenegen.assets.catalog import catalog_file
+
+        for location in config.catalogs:  # the user catalogs it was made with (paths: working directory)
+            audit_catalog_folder(audit, f"{where}: catalog {location}", catalog_file(Path(location)))
         _rederive(audit, where, source, batch, config)
 
 
@@ -387,12 +391,11 @@ def audit_catalog_folder(audit, where: str, catalog_file: Path) -> None:
 def _rederive(audit, where: str, source: Source, batch: Path, config) -> None:
     """Re-derive the source from the batch's files and recompute its realism checks; every field
     that differs from the manifest is a violation (packages and scenegen version: warnings)."""
-    from scenegen.assets.catalog import load_catalog
     from scenegen.manifest.derive import batch_source
     from scenegen.manifest.realism_checks import batch_realism
 
     try:
-        derived = batch_source(batch, config, load_catalog().sha256, source.predicate_version or "")
+        derived = batch_source(batch, config, config.catalog().sha256, source.predicate_version or "")
     except Exception as exc:  # noqa: BLE001 - e.g. index and directories disagree (already reported)
         audit.violation(where, "provenance", f"cannot re-derive the source from its files ({exc})"[:300])
         return

@@ -289,12 +289,11 @@ class _Audit:
                     f"failed: {check.value:.4g} is not {check.comparison} {check.threshold:.4g}",
                 )
             elif check.status == "insufficient":
-                self.warning(
-                    at,
-                    "realism",
-                    f"only {check.samples.get('batch')} samples (< {check.min_samples}): recorded, "
-                    "not judged",
+                batch, why = check.samples.get("batch", 0), check.details.get("note", "")
+                reason = (
+                    why if batch >= check.min_samples else f"only {batch} samples (< {check.min_samples})"
                 )
+                self.warning(at, "realism", f"{reason}: recorded, not judged")
 
     # ------------------------------------------------------------------------ recipes
 

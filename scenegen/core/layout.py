@@ -11,13 +11,14 @@ Frame: MuJoCo world, metres. The table top is the plane z = ``TABLE_TOP_Z`` over
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.assets.catalog import Asset, Catalog, convex_part_vertices
+from scenegen.assets.catalog import Asset, Catalog, convex_part_vertices, part_vertices, part_vertices_at
 from scenegen.core.rotations import quat_to_matrix, yaw_matrix
 from scenegen.schema.scene import FurniturePlacement, ObjectPlacement
 
@@ -27,10 +28,57 @@ TABLE_TOP_Z = 0.8
 # stands behind the table, not by its joint angles (joint 1 turns about this point's vertical axis).
 # tests/sim/test_world.py checks it against the MuJoCo model at every named pose.
 SHOULDER = (-0.56, 0.0, 1.245)
-# Assets with a flat top that others may be stacked on (``stack`` support).
-STACK_BASES = frozenset({"small_box", "cereal_box", "plate", "soup_can", "soda_can"})
+# An asset others may be stacked on (``stack`` support) has, standing upright (or in its most likely
+# pose), a flat top holding a circle of this radius (m): the bundled boxes, plate and cans (2.5 cm and
+# up), not the spoons, fork, knife, bottle, mug or bowl (1.6 cm and down). See is_stack_base.
+STACK_BASE_MIN_RADIUS = 0.02
+# A box-like asset (convex hull filling this much of its bounding box) has a flat top in every pose.
+BOX_FILL = 0.9
 # Home positions (x, y on the table, m) of the furniture pieces; procedural jitter moves them.
 FURNITURE_HOME: dict[str, tuple[float, float]] = {"shelf": (0.24, 0.27), "bin": (0.2, -0.3)}
+
+
+def is_stack_base(asset: Asset) -> bool:
+    """Whether others may be stacked on ``asset``: its flat top, upright (or in its most likely pose),
+    holds a circle of STACK_BASE_MIN_RADIUS, measured on its convex parts."""
+    return _flat_top_radius(asset.root, asset.parts.files, _base_pose(asset)) >= STACK_BASE_MIN_RADIUS
+
+
+def is_box_like(asset: Asset) -> bool:
+    """Whether ``asset`` has a flat top in every resting pose: its convex hull fills BOX_FILL of its
+    bounding box (a box: 1.0; a can: 0.79)."""
+    from scipy.spatial import ConvexHull
+
+    points = np.concatenate(part_vertices(asset))
+    return ConvexHull(points).volume >= BOX_FILL * float(np.prod(np.ptp(points, axis=0)))
+
+
+def _base_pose(asset: Asset) -> tuple[float, float, float, float]:
+    upright = asset.upright_pose()
+    return asset.resting_poses[upright if upright is not None else 0].quat
+
+
+@functools.lru_cache(maxsize=256)
+def _flat_top_radius(root, files: tuple[str, ...], quat: tuple[float, ...]) -> float:
+    """Radius (m) of the largest circle about the centre of a convex part's top face that the face
+    holds, over the parts whose top is the object's top (within 1.5 mm), in pose ``quat``."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    rot = quat_to_matrix(quat)
+    parts = [v @ rot.T for v in part_vertices_at(root, files)]
+    z_top = max(p[:, 2].max() for p in parts)
+    best = 0.0
+    for p in parts:
+        top = p[p[:, 2] >= z_top - 0.0015][:, :2]
+        if len(top) < 3:
+            continue
+        try:
+            hull = ConvexHull(top)
+        except QhullError:  # a line or a point: no area
+            continue
+        centre = top.mean(axis=0)
+        best = max(best, float(np.min(-(hull.equations[:, :2] @ centre + hull.equations[:, 2]))))
+    return best
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.core.layout import FURNITURE_HOME, STACK_BASES, footprint_radius
+from scenegen.core.layout import FURNITURE_HOME, footprint_radius, is_stack_base
 from scenegen.core.placement import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
@@ -295,10 +295,10 @@ class SceneEncoding:
 
     def _base_under(self, xy: np.ndarray, placed) -> tuple[ObjectPlacement, layout.Surface] | None:
         """The base for an object decoded as stacked at ``xy``, among the placed objects that may
-        carry another (``STACK_BASES``, not on the floor, as the procedural sampler stacks): of those
+        carry another (``layout.is_stack_base``, not on the floor, as the procedural sampler stacks): of those
         whose top holds ``xy`` (2 cm tolerance), the one whose top centre is nearest; else the one
         whose top is nearest, if within ``STACK_SNAP``; else None. Returns the base and its top."""
-        bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
+        bases = [o for o in placed if is_stack_base(self.catalog.get(o.asset)) and o.support != "floor"]
         tops = [layout.object_top_surface(self.catalog, o) for o in bases]
         holding = [
             (np.hypot(*(np.asarray(t.center) - xy)), k) for k, t in enumerate(tops) if t.margin(xy) >= -0.02

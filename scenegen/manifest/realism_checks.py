@@ -16,6 +16,7 @@ gets its checks recorded with status ``insufficient``: the tests have no power t
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from pathlib import Path
 
 from scenegen.manifest.schema import RealismCheck, RealismReference
@@ -88,8 +89,8 @@ def _reference_rows(path: str, size: int, mtime_ns: int) -> tuple[dict, ...]:
     return tuple(load_rows(Path(path), None))
 
 
-def _status(n: int, value: float, threshold: float) -> str:
-    if n < MIN_SAMPLES:
+def _status(n: int, value: float, threshold: float, reference: int = MIN_SAMPLES) -> str:
+    if n < MIN_SAMPLES or reference == 0:
         return "insufficient"
     return "passed" if value <= threshold else "failed"
 
@@ -104,9 +105,12 @@ def layout_checks(
 ) -> list[RealismCheck]:
     """``layout_c2st`` and ``layout_mmd`` of layout ``rows`` against the reference subset of the
     request. Fewer than 5 rows (the C2ST's folds) give ``insufficient`` checks with value 0."""
-    from scenegen.analysis.realism import c2st, feature_matrix, mmd
+    from scenegen.analysis.realism import c2st, feature_categories, feature_matrix, mmd
 
     subset, description = reference_subset(reference_rows(reference), condition, unconditional)
+    unknown = sorted({o["category"] for row in rows for o in row["objects"]} - set(feature_categories()))
+    if unknown:  # objects of a user catalog: the reference set has no layouts to compare them with
+        subset, description = [], f"none: categories {', '.join(unknown)} are not in the reference set"
     ref = RealismReference(source=_relative(reference), sha256=sha256_file(reference), subset=description)
     samples = {"batch": len(rows), "reference": len(subset)}
     if len(rows) >= 5 and len(subset) >= 5:
@@ -117,7 +121,8 @@ def layout_checks(
         mmd_details = {"p_value": round(kernel.p_value, 6), "bandwidth": round(kernel.bandwidth, 6)}
         c2st_value, mmd_value = round(test.accuracy, 6), round(kernel.mmd2, 6)
     else:
-        c2st_details = mmd_details = {"note": "fewer than 5 samples: not computed"}
+        note = description if unknown else "fewer than 5 samples: not computed"
+        c2st_details = mmd_details = {"note": note}
         c2st_value = mmd_value = 0.0
     common = {"batch_sha256": batch_sha, "reference": ref, "samples": samples, "min_samples": MIN_SAMPLES}
     return [
@@ -125,7 +130,7 @@ def layout_checks(
             metric="layout_c2st",
             value=c2st_value,
             threshold=C2ST_THRESHOLD,
-            status=_status(len(rows), c2st_value, C2ST_THRESHOLD),
+            status=_status(len(rows), c2st_value, C2ST_THRESHOLD, len(subset)),
             settings={"seed": seed, "folds": 5, "features": FEATURES},
             details=c2st_details,
             **common,
@@ -134,7 +139,7 @@ def layout_checks(
             metric="layout_mmd",
             value=mmd_value,
             threshold=MMD_THRESHOLD,
-            status=_status(len(rows), mmd_value, MMD_THRESHOLD),
+            status=_status(len(rows), mmd_value, MMD_THRESHOLD, len(subset)),
             settings={"seed": seed, "kernel": "gaussian, median heuristic", "estimate": "unbiased MMD^2"},
             details=mmd_details,
             **common,
@@ -142,8 +147,11 @@ def layout_checks(
     ]
 
 
-def image_check(batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES) -> RealismCheck:
-    """``image_stats`` of a rendered batch's RGB images against the committed reference renders."""
+def image_check(
+    batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES, unknown: Sequence[str] = ()
+) -> RealismCheck:
+    """``image_stats`` of a rendered batch's RGB images against the committed reference renders;
+    ``unknown``: categories of the batch that no reference render shows (then not judged)."""
     from scenegen.analysis.image_stats import (
         IMAGE_STATS_THRESHOLD,
         batch_image_statistics,
@@ -154,7 +162,10 @@ def image_check(batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES)
     rows, scene_ids, _ = batch_image_statistics(batch)
     ref_rows, meta = load_reference_image_stats(reference)
     n = len(set(scene_ids))
-    if len(rows) >= 2:
+    if unknown:  # objects of a user catalog, whose colours no reference render holds
+        ref_rows, value = [], 0.0
+        details = {"note": f"categories {', '.join(unknown)} are not in the reference renders: not computed"}
+    elif len(rows) >= 2:
         result = image_stats_check(rows, ref_rows)
         value, details = (
             round(result.value, 6),
@@ -166,7 +177,7 @@ def image_check(batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES)
         metric="image_stats",
         value=value,
         threshold=IMAGE_STATS_THRESHOLD,
-        status=_status(n, value, IMAGE_STATS_THRESHOLD),
+        status=_status(n, value, IMAGE_STATS_THRESHOLD, len(ref_rows)),
         batch_sha256=batch_sha,
         reference=RealismReference(
             source=_relative(reference), sha256=sha256_file(reference), subset=f"{len(ref_rows)} renders"
@@ -180,10 +191,14 @@ def image_check(batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES)
 
 def batch_realism(batch: Path, config, batch_sha: str) -> list[RealismCheck]:
     """Every realism check of a batch written by ``run_batch`` with recipe ``config``."""
+    from scenegen.analysis.realism import feature_categories
+
     unconditional = bool(getattr(config.proposer, "unconditional", False))
-    checks = layout_checks(batch_layout_rows(batch), batch_sha, config.condition, unconditional, config.seed)
+    rows = batch_layout_rows(batch)
+    checks = layout_checks(rows, batch_sha, config.condition, unconditional, config.seed)
     if config.render:
-        checks.append(image_check(batch, batch_sha))
+        unknown = sorted({o["category"] for row in rows for o in row["objects"]} - set(feature_categories()))
+        checks.append(image_check(batch, batch_sha, unknown=unknown))
     return checks
 
 

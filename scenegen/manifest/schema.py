@@ -141,7 +141,8 @@ class RealismCheck(_Entry):
     """One realism check of one source: ``value`` compared with ``threshold`` (``comparison``).
 
     ``status`` is ``passed`` or ``failed``, or ``insufficient`` when the source holds fewer samples
-    than ``min_samples`` (the check is then recorded, but says nothing). ``batch_sha256`` is the
+    than ``min_samples`` or the reference none (objects of a user catalog: the check is then recorded,
+    but says nothing). ``batch_sha256`` is the
     checksum root of the source when the check was computed: a check copied from another batch, or a
     batch changed after its check, no longer matches.
     """
@@ -164,11 +165,11 @@ class RealismCheck(_Entry):
 
     @model_validator(mode="after")
     def _status_agrees(self):
-        if self.samples.get("batch", 0) < self.min_samples:
+        if self.samples.get("batch", 0) < self.min_samples or self.samples.get("reference") == 0:
             if self.status != "insufficient":
                 raise ValueError(
                     f"{self.metric}: {self.samples.get('batch', 0)} samples < min_samples "
-                    f"{self.min_samples}, so its status must be 'insufficient'"
+                    f"{self.min_samples}, or no reference samples, so its status must be 'insufficient'"
                 )
         elif self.status != ("passed" if self.holds() else "failed"):
             raise ValueError(

@@ -15,11 +15,11 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 from scenegen.assets.catalog import Asset, Catalog
 from scenegen.core import layout
-from scenegen.core.layout import FURNITURE_HOME, STACK_BASES, footprint_radius
+from scenegen.core.layout import FURNITURE_HOME, footprint_radius, is_stack_base
 from scenegen.core.placement import placed_at_rest, yaw_quat
 from scenegen.propose.base import proposal_rng, register_proposer
 from scenegen.schema.condition import Condition
@@ -62,6 +62,7 @@ class ProceduralSettings(BaseModel):
     furniture: tuple[Literal["shelf", "bin"], ...] = ("shelf", "bin")
     furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
     categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
+    assets: tuple[str, ...] | None = None  # only these assets, the target's included; None = all
     furniture_probability: dict[str, float] = Field(default_factory=dict)  # kind -> P(present); default 1
     # Where objects go: table, floor (the strip beside the table), a furniture piece by name (its
     # top or inside), under_shelf (on the table beneath the shelf board), or stack (on the flat top
@@ -117,12 +118,33 @@ class ProceduralSettings(BaseModel):
                 raise ValueError(f"furniture_probability: {kind!r} must be one of furniture with 0 <= p <= 1")
         return self
 
+    @model_serializer(mode="wrap")
+    def _omit_unset_assets(self, handler):
+        # Recipes without ``assets`` dump (and hash) as before the key existed: their batches stay valid.
+        data = handler(self)
+        if data.get("assets", 0) is None:
+            del data["assets"]
+        return data
+
+    @field_validator("assets")
+    @classmethod
+    def _known_assets(cls, assets: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        from scenegen.assets.catalog import active_catalog
+
+        valid = active_catalog().by_name
+        for name in assets or ():
+            if name not in valid:
+                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(sorted(valid))}")
+        if assets is not None and not assets:
+            raise ValueError("an empty list allows no object; leave the key out to allow every asset")
+        return assets
+
     @field_validator("categories")
     @classmethod
     def _known_categories(cls, categories: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        from scenegen.assets.catalog import load_catalog
+        from scenegen.assets.catalog import active_catalog
 
-        valid = load_catalog().categories
+        valid = active_catalog().categories
         for c in categories or ():
             if c not in valid:
                 raise ValueError(f"unknown category {c!r}; valid categories: {', '.join(valid)}")
@@ -183,7 +205,10 @@ class ProceduralProposer:
         self.settings = settings
         self.catalog = catalog
         pool = settings.categories or catalog.categories
-        self.others = tuple(a for a in catalog.assets if a.category in pool)
+        self.allowed = tuple(
+            a for a in catalog.assets if settings.assets is None or a.name in settings.assets
+        )
+        self.others = tuple(a for a in self.allowed if a.category in pool)
 
     def describe(self) -> dict:
         return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
@@ -213,7 +238,7 @@ class ProceduralProposer:
         target_slot = int(rng.integers(n))
         table = surfaces["table"]
         cluster = rng.uniform(-0.6, 0.6, 2) * table.half if rng.uniform() < s.cluster_probability else None
-        target_kinds = self.catalog.of_category(condition.target)
+        target_kinds = tuple(a for a in self.allowed if a.category == condition.target)
         placed: list[ObjectPlacement] = []
         footprints: list[tuple[str, np.ndarray, float]] = []
         for slot in range(n):
@@ -225,7 +250,9 @@ class ProceduralProposer:
             weights = (s.target_support_weights if is_target else None) or s.support_weights
             support = _draw_support(rng, weights, surfaces)
             if support == "stack":
-                bases = [o for o in placed if o.asset in STACK_BASES and o.support != "floor"]
+                bases = [
+                    o for o in placed if is_stack_base(self.catalog.get(o.asset)) and o.support != "floor"
+                ]
                 base = bases[int(rng.integers(len(bases)))] if bases else None
                 support = base.name if base else "table"
                 if base is not None:

@@ -81,9 +81,9 @@ class TargetedSettings(ProceduralSettings):
     @field_validator("occluders", "stack_bases")
     @classmethod
     def _known_assets(cls, names: tuple[str, ...]) -> tuple[str, ...]:
-        from scenegen.assets.catalog import load_catalog
+        from scenegen.assets.catalog import active_catalog
 
-        valid = [a.name for a in load_catalog().assets]
+        valid = [a.name for a in active_catalog().assets]
         for name in names:
             if name not in valid:
                 raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(valid)}")
@@ -166,7 +166,7 @@ class TargetedProposer:
         upright = [i for i, p in enumerate(asset.resting_poses) if p.upright]
         # A box lies flat (its widest top); other bases stand upright.
         pose = max(range(len(asset.resting_poses)), key=lambda i: asset.resting_poses[i].probability)
-        pose = pose if asset.category == "box" else upright[0]
+        pose = pose if layout.is_box_like(asset) or not upright else upright[0]
         base = self._add(scene, asset, pose, self._table(), rng, margin="radius")
         top = layout.object_top_surface(self.catalog, base)
         inner = layout.Surface(base.name, top.z, top.center, tuple(h / 2 for h in top.half), top.yaw)

@@ -14,6 +14,7 @@ from typing import Annotated
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
+from scenegen.assets.catalog import CatalogError, using_catalogs
 from scenegen.check.geometry import CheckSettings
 from scenegen.propose.base import impossible_request
 from scenegen.propose.diffusion import DiffusionSettings
@@ -74,15 +75,28 @@ class PipelineConfig(BaseModel):
     # Share of the robot's visual-mesh triangles drawn (quadric decimation, once per worker; the
     # simulated model is unchanged); None: the meshes as shipped. Recorded in scene.json `render`.
     robot_mesh_detail: float | None = Field(None, gt=0.0, le=1.0)
+    # User asset catalogs (``scenegen assets add``), each a catalog.yaml or its folder, relative to the
+    # working directory; merged after the bundled one. Empty: the bundled catalog only.
+    catalogs: tuple[str, ...] = ()
 
     @model_validator(mode="after")
     def _reachable_request(self):
-        from scenegen.assets.catalog import load_catalog
-
-        problem = impossible_request(self.condition, load_catalog())
+        catalog = self.catalog()
+        problem = impossible_request(self.condition, catalog)
         if problem:
             raise ValueError(f"condition: {problem}")
+        allowed = getattr(self.proposer, "assets", None)
+        if allowed is not None and not any(catalog.get(a).category == self.condition.target for a in allowed):
+            raise ValueError(
+                f"proposer.assets: none is a {self.condition.target} (the target); add one, or drop the key"
+            )
         return self
+
+    def catalog(self):
+        """The bundled catalog merged with the recipe's user ``catalogs`` (assets.catalog.Catalog)."""
+        from scenegen.assets.catalog import load_catalogs
+
+        return load_catalogs([Path(p) for p in self.catalogs])
 
     @model_serializer(mode="wrap")
     def _omit_unset_filter(self, handler):
@@ -92,6 +106,8 @@ class PipelineConfig(BaseModel):
         for key in ("realism", "robot_mesh_detail"):  # the same for the render setting
             if data.get(key, 0) is None:
                 del data[key]
+        if not data.get("catalogs", True):  # and for a recipe of the bundled catalog only
+            del data["catalogs"]
         return data
 
     @property
@@ -216,11 +232,31 @@ def load_pipeline(
         shared = {k: v for k, v in (raw.get("proposer") or {}).items() if k in settings.model_fields}
         raw["proposer"] = {**shared, "kind": proposer}
     try:
-        return PipelineConfig.model_validate(raw)
+        with using_catalogs(_catalog_paths(path, raw.get("catalogs"))):
+            return PipelineConfig.model_validate(raw)
+    except CatalogError as exc:
+        raise ConfigError(f"{path}: catalogs: {exc}") from None
     except ValidationError as exc:
         raise ConfigError(_blame_request(_format_error(path, exc), path, request)) from None
     except ValueError as exc:
         raise ConfigError(_blame_request(f"{path}: {exc}", path, request)) from None
+
+
+def validate_config(raw: dict) -> PipelineConfig:
+    """A recipe mapping (a stored pipeline.yaml, or a worker's copy) validated against its own
+    ``catalogs``: the bundled catalog and the user catalogs it names."""
+    catalogs = raw.get("catalogs") or []
+    with using_catalogs([Path(c) for c in catalogs]):
+        return PipelineConfig.model_validate(raw)
+
+
+def _catalog_paths(path: Path, catalogs) -> list[Path]:
+    """The ``catalogs`` key of a recipe as paths (ConfigError naming the key if it is not a list)."""
+    if catalogs is None:
+        return []
+    if not isinstance(catalogs, list | tuple) or not all(isinstance(c, str) for c in catalogs):
+        raise ConfigError(f"{path}: catalogs: a list of catalog files, e.g. [user_assets/catalog.yaml]")
+    return [Path(c) for c in catalogs]
 
 
 def _blame_request(message: str, path: Path, request: str | None) -> str:

@@ -18,7 +18,6 @@ from pathlib import Path
 
 import yaml
 
-from scenegen.assets.catalog import load_catalog
 from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.runner.config import PipelineConfig
 from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes
@@ -60,7 +59,7 @@ def run_batch(
     resuming a killed batch of the same recipe."""
     from tqdm import tqdm
 
-    catalog = load_catalog()
+    catalog = config.catalog()
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
     store = BatchStore(out)
     state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))

@@ -7,6 +7,7 @@ actor: scenegen/runner/executors.py), which loads the recipe and catalog once an
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -14,11 +15,11 @@ from dataclasses import dataclass, field
 import mujoco
 
 from scenegen import __version__
-from scenegen.assets.catalog import Catalog, load_catalog
+from scenegen.assets.catalog import Catalog
 from scenegen.check.geometry import run_checks
 from scenegen.manifest.derive import SCENE_PACKAGES, package_versions
 from scenegen.render.offscreen import RENDER_SETTINGS  # settings only: no GL is touched at import
-from scenegen.runner.config import PipelineConfig, RealismFilter
+from scenegen.runner.config import PipelineConfig, RealismFilter, validate_config
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle.physics import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.sim import world
@@ -141,6 +142,7 @@ def process_proposal(
             "pipeline": config.name,
             "pipeline_sha256": config.digest(),
             "catalog_sha256": catalog.sha256,
+            **({"catalogs": [f.model_dump() for f in catalog.files]} if config.catalogs else {}),
         },
     )
     clock.stop("store")  # record + MJCF export; file writes are added later
@@ -257,12 +259,12 @@ def init_worker(config_json: str, pooled: bool = False, export: bool = True, sco
     if pooled:
         # Mesa's llvmpipe rasterizes on every core by default; with one worker per core that thrashes.
         os.environ.setdefault("LP_NUM_THREADS", "1")
-    config = PipelineConfig.model_validate_json(config_json)
+    config = validate_config(json.loads(config_json))
     if scorer is not None:
         from scenegen.analysis.scene_score import install_scorer
 
         install_scorer(config.realism.reference, config.realism.k, scorer)
-    _WORKER = (config, load_catalog(), export)
+    _WORKER = (config, config.catalog(), export)
     _warm_up(config, _WORKER[1])
 
 

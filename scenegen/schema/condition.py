@@ -7,8 +7,11 @@ separate notion of the generator, not a value of these fields.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
+from collections.abc import Iterator
+from contextvars import ContextVar
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -52,11 +55,36 @@ ROBOT_POSES: dict[str, tuple[float, ...]] = {
 }
 
 
-def known_categories() -> tuple[str, ...]:
-    """Object categories of the bundled asset catalog (the valid targets)."""
-    from scenegen.assets.catalog import load_catalog
+_VOUCHED: ContextVar[frozenset[str]] = ContextVar("scenegen_vouched_categories", default=frozenset())
 
-    return load_catalog().categories
+
+@contextlib.contextmanager
+def vouched_categories(categories) -> Iterator[None]:
+    """Within the block, ``categories`` are known too: a stored scene vouches for the categories of
+    its own objects (they came from the user catalogs it was made with), so reading it needs none."""
+    token = _VOUCHED.set(_VOUCHED.get() | frozenset(c for c in categories if isinstance(c, str)))
+    try:
+        yield
+    finally:
+        _VOUCHED.reset(token)
+
+
+def vouch_for_objects(data, handler):
+    """A wrap validator's body for a record holding ``objects``: validate it with their categories
+    vouched for (:func:`vouched_categories`)."""
+    objects = data.get("objects") if isinstance(data, dict) else None
+    categories = [o.get("category") for o in objects or () if isinstance(o, dict)]
+    with vouched_categories(categories):
+        return handler(data)
+
+
+def known_categories() -> tuple[str, ...]:
+    """Object categories of the asset catalogs in use (the valid targets): the bundled catalog, the
+    user catalogs a recipe names while it is validated (``assets.catalog.using_catalogs``), and those
+    a stored scene vouches for (:func:`vouched_categories`)."""
+    from scenegen.assets.catalog import active_catalog
+
+    return tuple(sorted(set(active_catalog().categories) | _VOUCHED.get()))
 
 
 def known_task(task: str) -> str:

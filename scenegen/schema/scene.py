@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from scenegen.schema.condition import Condition
+from scenegen.schema.condition import Condition, vouch_for_objects
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]  # w, x, y, z
@@ -111,6 +111,11 @@ class SceneProposal(_Value):
     lighting: Lighting
     cameras: tuple[Camera, ...]
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _own_categories(cls, data, handler):
+        return vouch_for_objects(data, handler)  # its objects' categories are known targets
+
 
 class CheckResult(_Value):
     """Outcome of one check. ``value`` and ``threshold`` are in the unit the check names."""
@@ -204,3 +209,8 @@ class SceneRecord(BaseModel):
     settle: dict  # sim time, steps, max speeds at the end
     provenance: dict  # scenegen version, package versions, pipeline hash, catalog hash
     files: dict[str, str] = Field(default_factory=dict)  # relative path -> sha256
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _own_categories(cls, data, handler):
+        return vouch_for_objects(data, handler)  # made with user catalogs: readable without them

@@ -192,7 +192,7 @@ def _add_asset_meshes(spec: mujoco.MjSpec, catalog: Catalog, asset: Asset, scale
         files = [asset.mesh, *asset.parts.files]
         for name, rel in zip([visual, *parts], files, strict=True):
             spec.add_mesh(name=name, file=str(asset.file(rel)), scale=[scale] * 3)
-    if asset.texture and spec.material(f"{asset.name}_material") is None:
+    if asset.texture and not any(m.name == f"{asset.name}_material" for m in spec.materials):
         # A 2D texture mapped with the visual mesh's texture coordinates (an imported asset's).
         spec.add_texture(
             name=f"{asset.name}_texture",

@@ -66,6 +66,7 @@ class TagContext:
     camera_position: np.ndarray  # the main camera (first camera of the scene)
     contacts: Sequence[Contact]
     upright_axes: np.ndarray  # (k, 3) world-up in the target's body frame for each upright resting pose
+    orientation_free: bool = False  # the target is round: no way of lying is toppled
 
     @classmethod
     def of_scene(
@@ -93,6 +94,7 @@ class TagContext:
             np.asarray(camera_position, float),
             contacts,
             np.array(axes).reshape(-1, 3),
+            asset.orientation_free,
         )
 
 
@@ -167,7 +169,9 @@ def under_overhang(ctx: TagContext, s: TagSettings) -> TagValue:
 @predicate("toppled")
 def toppled(ctx: TagContext, s: TagSettings) -> TagValue:
     """Angle (rad) between the target's orientation and its nearest upright resting pose, yaw aside:
-    the angle between world-up seen in the body frame now and in that pose."""
+    the angle between world-up seen in the body frame now and in that pose (0 for a round target)."""
+    if ctx.orientation_free:
+        return _measured(0.0, round(s.toppled_angle, 6), "rad", operator.gt)
     up_now = ctx.data.body(ctx.target).xmat.reshape(3, 3)[2, :]  # third row = world z in body frame
     axes = ctx.upright_axes if len(ctx.upright_axes) else np.array([[0.0, 0.0, 1.0]])
     angle = min(math.acos(max(-1.0, min(1.0, float(np.dot(up_now, a) / np.linalg.norm(a))))) for a in axes)
