@@ -11,6 +11,7 @@ It stands in for real data and says so: its manifest entry has origin ``referenc
 
 from __future__ import annotations
 
+import json
 import os
 from collections import Counter
 from collections.abc import Iterator
@@ -19,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from scenegen.analysis.realism import HELDOUT_EVERY, layout_row  # noqa: F401 - both are part of this module's face
-from scenegen.assets.catalog import load_catalog
+from scenegen.assets.catalog import using_catalogs
 from scenegen.core.files import sha256_file
 from scenegen.propose.base import PROPOSERS
 from scenegen.runner.config import PipelineConfig
@@ -42,7 +43,7 @@ def request_for(config: PipelineConfig, index: int, categories: tuple[str, ...])
 
 
 def _proposals(config: PipelineConfig) -> Iterator[SceneProposal]:
-    catalog = load_catalog()
+    catalog = config.catalog()
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
     for index in range(config.proposal_cap):
         yield from proposer.propose(request_for(config, index, catalog.categories), [index], config.seed)
@@ -63,24 +64,26 @@ def build_reference(
     bar = tqdm(total=config.n, desc=f"reference {config.name}", unit="layout", disable=not progress)
     outcomes = ordered_outcomes(_proposals(config), config, workers, export=False, backend=backend)
     proposals = 0
-    try:
-        for outcome in outcomes:
-            proposals = outcome.proposal_index + 1
-            if outcome.record is None:
-                rejections[outcome.rejection.label] += 1
-                continue
-            rows.append(layout_row(outcome.record))
-            bar.update(1)
-            if len(rows) == config.n:
-                break
-    finally:
-        outcomes.close()
-        bar.close()
+    with using_catalogs([Path(c) for c in config.catalogs]):  # requests of user categories are valid
+        try:
+            for outcome in outcomes:
+                proposals = outcome.proposal_index + 1
+                if outcome.record is None:
+                    rejections[outcome.rejection.label] += 1
+                    continue
+                rows.append(layout_row(outcome.record))
+                bar.update(1)
+                if len(rows) == config.n:
+                    break
+        finally:
+            outcomes.close()
+            bar.close()
     metadata = {
         "scenegen.reference": "stands in for real data: procedural layouts through check, settle and tag",
         "predicate_version": PREDICATE_VERSION,
         "pipeline_sha256": config.digest(),
-        "catalog_sha256": load_catalog().sha256,
+        "catalog_sha256": config.catalog().sha256,
+        **({"catalogs": json.dumps(list(config.catalogs))} if config.catalogs else {}),
         "seed": str(config.seed),
         "proposals": str(proposals),
         "rejections": ",".join(f"{k}={v}" for k, v in sorted(rejections.items())),

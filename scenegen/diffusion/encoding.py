@@ -35,12 +35,12 @@ Pure numpy; no MuJoCo, no torch.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.assets.catalog import Catalog
+from scenegen.assets.catalog import Asset, Catalog
 from scenegen.core import layout
 from scenegen.core.layout import FURNITURE_HOME, footprint_radius, is_stack_base
 from scenegen.core.placement import placed_at_rest, quat_mul, snap_to_rest, yaw_quat
@@ -92,6 +92,20 @@ def _yaw_of(quat: Sequence[float], rest: Sequence[float]) -> float:
     return 2.0 * math.atan2(rel[3], rel[0])
 
 
+Substitute = Callable[[Asset, int, int], "tuple[Asset, int] | None"]
+
+
+def matched_pose(asset: Asset, pose: int, other: Asset) -> int:
+    """The resting pose of ``other`` that matches ``asset``'s ``pose``: of those as upright as it (all
+    when none is), the one whose height over the tallest pose's is nearest its own."""
+    rel = asset.resting_poses[pose].height / max(p.height for p in asset.resting_poses)
+    top = max(p.height for p in other.resting_poses)
+    same = [i for i, p in enumerate(other.resting_poses) if p.upright == asset.resting_poses[pose].upright]
+    return min(
+        same or range(len(other.resting_poses)), key=lambda i: abs(other.resting_poses[i].height / top - rel)
+    )
+
+
 @dataclass(frozen=True)
 class Decoded:
     """A decoded scene: the proposal, and the projection distance (m) of each object."""
@@ -103,19 +117,28 @@ class Decoded:
 class SceneEncoding:
     """The map between layouts and (object tokens (SLOTS, object_width), scene token (scene_width))."""
 
-    def __init__(self, catalog: Catalog, slots: int = SLOTS, light_slots: int = LIGHT_SLOTS):
+    def __init__(
+        self,
+        catalog: Catalog,
+        slots: int = SLOTS,
+        light_slots: int = LIGHT_SLOTS,
+        assets: Sequence[str] | None = None,
+    ):
+        """``assets``: the assets of the asset one-hot, in order (a checkpoint's; default every asset
+        of ``catalog``, which may hold more: decoding can place those through ``substitute``)."""
         self.catalog = catalog
         self.slots = slots
         self.light_slots = light_slots
-        self.assets = tuple(a.name for a in catalog.assets)
-        self.max_poses = max(len(a.resting_poses) for a in catalog.assets)
+        self.assets = tuple(assets) if assets is not None else tuple(a.name for a in catalog.assets)
+        known = [catalog.get(name) for name in self.assets]
+        self.max_poses = max(len(a.resting_poses) for a in known)
         # pose_order[asset][column] = resting-pose index: upright poses first, so that a column means
         # "upright" for most assets (a sample whose asset changes late in denoising stays upright)
         self.pose_order = {
             a.name: tuple(
                 sorted(range(len(a.resting_poses)), key=lambda p: (not a.resting_poses[p].upright, p))
             )
-            for a in catalog.assets
+            for a in known
         }
         n_assets = len(self.assets)
         # Column offsets of an object token.
@@ -208,13 +231,18 @@ class SceneEncoding:
         index: int = 0,
         seed: int = 0,
         own_target: bool = False,
+        substitute: Substitute | None = None,
     ) -> Decoded:
         """A proposal from (possibly noisy) tokens: discrete fields by argmax, objects snapped onto a
         resting pose at their support's height, the target an object of ``condition.target``'s
         category (see :meth:`_target`). The scene has the most present slots' objects (module docstring).
 
         ``own_target``: the target is the slot the sample flags most, whatever its category, and the
-        proposal's condition names that category (for samples of the null condition)."""
+        proposal's condition names that category (for samples of the null condition).
+
+        ``substitute(asset, pose, slot)``: the asset and resting pose to place for a slot decoded as
+        ``asset`` in ``pose`` (a user asset of the same category, say), or None to leave the slot out
+        (never the target's); called in placement order, before snapping."""
         tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
         furniture = self._furniture(scene)
         surfaces = layout.support_surfaces(furniture)
@@ -234,6 +262,11 @@ class SceneEncoding:
             asset = self.catalog.get(asset_of[s])
             columns = self.pose_order[asset.name]
             pose = columns[int(np.argmax(token[self.pose_cols][: len(columns)]))]
+            if substitute is not None:
+                swapped = substitute(asset, pose, s)
+                if swapped is None and s != target:
+                    continue
+                asset, pose = swapped or (asset, pose)
             xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, layout.TABLE_TOP_Z]
             xy = xyz[:2]
             yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from scenegen.assets.catalog import load_catalog
+from scenegen.assets.catalog import load_catalogs
 from scenegen.core.files import load_rows, sha256_file
 from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
 from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
@@ -154,6 +154,24 @@ def _data_predicate_version(path: Path) -> str:
     return version.decode()
 
 
+def data_catalog(path: Path):
+    """The catalog a layout table was made with: the bundled one, merged with the user catalogs its
+    metadata names (``catalogs``, written by ``scenegen reference`` for a recipe with ``catalogs``);
+    ValueError naming the table when those catalogs changed since."""
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(path).metadata or {}
+    locations = json.loads(meta.get(b"catalogs", b"[]").decode())
+    catalog = load_catalogs([Path(p) for p in locations])
+    recorded = meta.get(b"catalog_sha256", b"").decode()
+    if recorded and recorded != catalog.sha256:
+        raise ValueError(
+            f"{path}: made with other asset catalogs than {', '.join(locations) or 'the bundled one'} hold "
+            "now; rebuild it with `scenegen reference`"
+        )
+    return catalog
+
+
 def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator) -> None:
     """Load a checkpoint directory's weights, optimizer and random state into the given objects and
     its step, losses and CPU time into ``config``; ValueError when it was trained otherwise."""
@@ -182,7 +200,7 @@ def train(
     from tqdm import tqdm
 
     torch.manual_seed(settings.seed)
-    catalog = load_catalog()
+    catalog = data_catalog(data_path)
     encoding = SceneEncoding(catalog)
     data = layout_tensors(load_rows(data_path, None if settings.split == "all" else settings.split), encoding)
     denoiser_config = DenoiserConfig(

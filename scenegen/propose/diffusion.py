@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
 
 from scenegen.assets.catalog import Catalog
 from scenegen.paths import PROJECT_ROOT
@@ -54,6 +54,37 @@ class DiffusionSettings(BaseModel):
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
     cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
+    # Only these assets are placed: an object the model decodes as another asset becomes one of these
+    # of its category (user assets of a category the model knows), or is left out. None: the model's.
+    assets: tuple[str, ...] | None = None
+
+    @model_serializer(mode="wrap")
+    def _omit_unset_assets(self, handler):
+        # Recipes without ``assets`` dump (and hash) as before the key existed: their batches stay valid.
+        data = handler(self)
+        if data.get("assets", 0) is None:
+            del data["assets"]
+        return data
+
+    @field_validator("assets")
+    @classmethod
+    def _known_assets(cls, assets: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        from scenegen.assets.catalog import active_catalog
+
+        valid = active_catalog().by_name
+        for name in assets or ():
+            if name not in valid:
+                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(sorted(valid))}")
+        if assets is not None and not assets:
+            raise ValueError("an empty list allows no object; leave the key out to allow the model's assets")
+        return assets
+
+    def known_categories(self) -> list[str]:
+        """The target categories the checkpoint was trained with."""
+        from scenegen.core.files import read_checkpoint_config
+
+        config = read_checkpoint_config(self.checkpoint_dir(), "generator", "train one with `scenegen train`")
+        return list(config["encoding"]["categories"])
 
     @field_validator("checkpoint")
     @classmethod
@@ -103,9 +134,19 @@ class DiffusionProposer:
         self.settings = settings
         self.catalog = catalog
         self.model, self.config = load_generator(settings)
-        self.encoding = SceneEncoding(catalog)
-        if self.config["encoding"].get("assets") != list(self.encoding.assets):
-            raise ValueError(f"{settings.checkpoint}: trained on another asset catalog; retrain it")
+        trained = list(self.config["encoding"].get("assets") or [])
+        missing = [name for name in trained if name not in catalog.by_name]
+        if missing:
+            raise ValueError(
+                f"{settings.checkpoint}: trained with assets the recipe's catalogs lack "
+                f"({', '.join(missing[:3])}); add their catalog to `catalogs`, or retrain it"
+            )
+        self.encoding = SceneEncoding(catalog, assets=trained)
+        if self.encoding.object_width != self.config["denoiser"]["object_width"]:
+            raise ValueError(
+                f"{settings.checkpoint}: trained on other resting poses of its assets; retrain it"
+            )
+        self.allowed = None if settings.assets is None else tuple(catalog.get(a) for a in settings.assets)
         self._group_key: tuple | None = None
         self._group: list = []
 
@@ -136,6 +177,29 @@ class DiffusionProposer:
 
     def propose(self, condition: Condition, indices: Sequence[int], seed: int) -> list[SceneProposal]:
         return [self.decoded(condition, i, seed).proposal for i in indices]
+
+    def _substitute(self, seed: int, index: int):
+        """The ``substitute`` of decoding proposal ``index`` (None without ``assets``): an object the
+        model decodes as an asset outside ``assets`` becomes one of ``assets`` of its category, drawn
+        from SeedSequence([seed, index, 5]), in the resting pose matched by uprightness and height
+        (``encoding.matched_pose``); without one of its category, it is left out."""
+        if self.allowed is None:
+            return None
+        from scenegen.diffusion.encoding import matched_pose
+
+        allowed = {a.name for a in self.allowed}
+        rng = np.random.default_rng(np.random.SeedSequence([seed, index, 5]))
+
+        def swap(asset, pose: int, slot: int):
+            if asset.name in allowed:
+                return asset, pose
+            pool = [a for a in self.allowed if a.category == asset.category]
+            if not pool:
+                return None
+            other = pool[int(rng.integers(len(pool)))]
+            return other, matched_pose(asset, pose, other)
+
+        return swap
 
     def decoded(self, condition: Condition, index: int, seed: int):
         """Proposal ``index`` with its projection distances (``encoding.Decoded``).
@@ -185,7 +249,14 @@ class DiffusionProposer:
             cameras = jitter_cameras(rng, s.cameras, s.camera_jitter)
             tokens, scene_k = objects[k].numpy().astype(np.float64), scene[k].numpy().astype(np.float64)
             decoded = self.encoding.decode(
-                tokens, scene_k, condition, cameras, index, seed, own_target=s.unconditional
+                tokens,
+                scene_k,
+                condition,
+                cameras,
+                index,
+                seed,
+                own_target=s.unconditional,
+                substitute=self._substitute(seed, index),
             )
             if s.separate:
                 proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift)

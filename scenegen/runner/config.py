@@ -90,6 +90,13 @@ class PipelineConfig(BaseModel):
             raise ValueError(
                 f"proposer.assets: none is a {self.condition.target} (the target); add one, or drop the key"
             )
+        diffusion = self.proposer.kind == "diffusion"
+        if diffusion and self.condition.target not in self.proposer.known_categories():
+            raise ValueError(
+                f"condition: the generator {self.proposer.checkpoint} does not know the category "
+                f"{self.condition.target!r}: use --proposer procedural (or targeted), or train one that "
+                "knows it (scenegen reference with these catalogs, then scenegen train; docs/assets.md)"
+            )
         return self
 
     def catalog(self):
