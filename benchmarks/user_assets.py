@@ -29,6 +29,7 @@ torch.set_num_threads(1)
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import re  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -48,7 +49,8 @@ def cpu_seconds() -> float:
 
 def arm(name: str, recipe: dict, n: int) -> dict:
     """One batch of ``recipe`` (a mapping) in a temporary directory: counts and CPU."""
-    config = validate_config({**recipe, "name": name, "n": n, "max_proposals": 20 * n, "render": False})
+    batch = re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+    config = validate_config({**recipe, "name": batch, "n": n, "max_proposals": 20 * n, "render": False})
     with tempfile.TemporaryDirectory() as tmp:
         start = cpu_seconds()
         summary = run_batch(config, Path(tmp) / "batch", workers=1, progress=False)

@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import numpy as np
+from pydantic import BaseModel, field_validator, model_serializer
 
 from scenegen.assets.catalog import Asset
 from scenegen.schema.condition import Condition
@@ -61,3 +62,31 @@ def impossible_request(condition: Condition, catalog) -> str | None:
 def proposal_rng(seed: int, index: int) -> np.random.Generator:
     """The random generator of proposal ``index`` in a batch with ``seed``."""
     return np.random.default_rng(np.random.SeedSequence([seed, index]))
+
+
+class AssetChoice(BaseModel):
+    """``assets``: the only assets a proposer places (a user catalog's, say); None, the default, puts
+    no limit and is left out of the settings' dump, so recipes without the key hash as before it
+    existed. Shared by the procedural and diffusion settings."""
+
+    assets: tuple[str, ...] | None = None
+
+    @model_serializer(mode="wrap")
+    def _omit_unset_assets(self, handler):
+        data = handler(self)
+        if data.get("assets", 0) is None:
+            del data["assets"]
+        return data
+
+    @field_validator("assets")
+    @classmethod
+    def _known_assets(cls, assets: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        from scenegen.assets.catalog import active_catalog
+
+        valid = active_catalog().by_name
+        for name in assets or ():
+            if name not in valid:
+                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(sorted(valid))}")
+        if assets is not None and not assets:
+            raise ValueError("an empty list allows no object; leave the key out to allow every asset")
+        return assets

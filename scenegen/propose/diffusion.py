@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer
+from pydantic import ConfigDict, Field, field_validator
 
 from scenegen.assets.catalog import Catalog
 from scenegen.paths import PROJECT_ROOT
-from scenegen.propose.base import proposal_rng, register_proposer
+from scenegen.propose.base import AssetChoice, proposal_rng, register_proposer
 from scenegen.propose.procedural import DEFAULT_CAMERAS, jitter_cameras
 from scenegen.propose.separate import separate
 from scenegen.schema.condition import RARE_TAGS, Condition
@@ -38,8 +38,11 @@ def require_encoding(config: dict, checkpoint: str) -> None:
         )
 
 
-class DiffusionSettings(BaseModel):
-    """Settings of the diffusion proposer (``proposer.kind: diffusion``)."""
+class DiffusionSettings(AssetChoice):
+    """Settings of the diffusion proposer (``proposer.kind: diffusion``). ``assets``
+    (:class:`~scenegen.propose.base.AssetChoice`): only these are placed; an object the model decodes
+    as another asset becomes one of these of its category (user assets of a category the model
+    knows), or is left out."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -54,30 +57,6 @@ class DiffusionSettings(BaseModel):
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
     cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
-    # Only these assets are placed: an object the model decodes as another asset becomes one of these
-    # of its category (user assets of a category the model knows), or is left out. None: the model's.
-    assets: tuple[str, ...] | None = None
-
-    @model_serializer(mode="wrap")
-    def _omit_unset_assets(self, handler):
-        # Recipes without ``assets`` dump (and hash) as before the key existed: their batches stay valid.
-        data = handler(self)
-        if data.get("assets", 0) is None:
-            del data["assets"]
-        return data
-
-    @field_validator("assets")
-    @classmethod
-    def _known_assets(cls, assets: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        from scenegen.assets.catalog import active_catalog
-
-        valid = active_catalog().by_name
-        for name in assets or ():
-            if name not in valid:
-                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(sorted(valid))}")
-        if assets is not None and not assets:
-            raise ValueError("an empty list allows no object; leave the key out to allow the model's assets")
-        return assets
 
     def known_categories(self) -> list[str]:
         """The target categories the checkpoint was trained with."""

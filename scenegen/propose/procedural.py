@@ -15,13 +15,13 @@ from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from scenegen.assets.catalog import Asset, Catalog
 from scenegen.core import layout
 from scenegen.core.layout import FURNITURE_HOME, footprint_radius, is_stack_base
 from scenegen.core.placement import placed_at_rest, yaw_quat
-from scenegen.propose.base import proposal_rng, register_proposer
+from scenegen.propose.base import AssetChoice, proposal_rng, register_proposer
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import (
     Camera,
@@ -52,8 +52,9 @@ class LightingSettings(BaseModel):
     shadows: int = 1  # how many lights cast shadows (each costs render time)
 
 
-class ProceduralSettings(BaseModel):
-    """Settings of the procedural proposer (``proposer.kind: procedural`` in a pipeline)."""
+class ProceduralSettings(AssetChoice):
+    """Settings of the procedural proposer (``proposer.kind: procedural`` in a pipeline); ``assets``
+    (:class:`~scenegen.propose.base.AssetChoice`): the only assets drawn, the target's included."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -62,7 +63,6 @@ class ProceduralSettings(BaseModel):
     furniture: tuple[Literal["shelf", "bin"], ...] = ("shelf", "bin")
     furniture_jitter: float = Field(0.02, ge=0.0, le=0.1)  # m
     categories: tuple[str, ...] | None = None  # categories of the other objects; None = all
-    assets: tuple[str, ...] | None = None  # only these assets, the target's included; None = all
     furniture_probability: dict[str, float] = Field(default_factory=dict)  # kind -> P(present); default 1
     # Where objects go: table, floor (the strip beside the table), a furniture piece by name (its
     # top or inside), under_shelf (on the table beneath the shelf board), or stack (on the flat top
@@ -117,27 +117,6 @@ class ProceduralSettings(BaseModel):
             if kind not in self.furniture or not 0 <= p <= 1:
                 raise ValueError(f"furniture_probability: {kind!r} must be one of furniture with 0 <= p <= 1")
         return self
-
-    @model_serializer(mode="wrap")
-    def _omit_unset_assets(self, handler):
-        # Recipes without ``assets`` dump (and hash) as before the key existed: their batches stay valid.
-        data = handler(self)
-        if data.get("assets", 0) is None:
-            del data["assets"]
-        return data
-
-    @field_validator("assets")
-    @classmethod
-    def _known_assets(cls, assets: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        from scenegen.assets.catalog import active_catalog
-
-        valid = active_catalog().by_name
-        for name in assets or ():
-            if name not in valid:
-                raise ValueError(f"unknown asset {name!r}; valid assets: {', '.join(sorted(valid))}")
-        if assets is not None and not assets:
-            raise ValueError("an empty list allows no object; leave the key out to allow every asset")
-        return assets
 
     @field_validator("categories")
     @classmethod
