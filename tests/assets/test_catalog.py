@@ -174,3 +174,17 @@ def test_missing_catalog_file_says_how_to_build_it(tmp_path, monkeypatch):
     monkeypatch.setattr("scenegen.assets.catalog.ASSETS_DIR", tmp_path / "bundled")
     with pytest.raises(CatalogError, match="make assets"):
         load_catalog(tmp_path / "bundled")
+
+
+def test_stack_bases_and_box_like_bases_by_geometry_are_the_bundled_lists():
+    from scenegen.core.layout import is_box_like, is_stack_base
+
+    # The names core/layout.py and propose/targeted.py listed before geometry decided.
+    assert {a.name for a in BUNDLED.assets if is_stack_base(a)} == {
+        "small_box",
+        "cereal_box",
+        "plate",
+        "soup_can",
+        "soda_can",
+    }
+    assert {a.name for a in BUNDLED.assets if is_box_like(a)} == {"small_box", "cereal_box"}

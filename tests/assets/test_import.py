@@ -262,3 +262,19 @@ def test_kill_9_during_an_import_leaves_the_catalog_as_it_was(tmp_path):
         audit.report.violations
     )  # the killed import's staging folder is ignored
     assert len(staging) == 1
+
+
+def test_a_round_object_is_upright_in_every_pose_and_never_toppled(tmp_path):
+    from scenegen.tags.predicates import TagContext, TagSettings, toppled
+
+    lemon = tmp_path / "lemon.stl"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.02).apply_scale((1.12, 1.0, 1.0)).export(lemon)
+    result = add_asset(lemon, ImportOptions("fruit", collision="hull"), tmp_path / "user")
+    assert result.asset.orientation_free and all(p.upright for p in result.asset.resting_poses)
+    assert any("round" in note for note in result.notes)
+    can = tmp_path / "tin.stl"
+    trimesh.creation.cylinder(radius=0.025, height=0.08, sections=24).export(can)
+    tin = add_asset(can, ImportOptions("can", collision="hull"), tmp_path / "user").asset
+    assert not tin.orientation_free  # 5 x 5 x 8 cm: not about as long as wide
+    ctx = TagContext(None, None, "lemon", ["lemon"], (), None, np.zeros(3), (), np.zeros((0, 3)), True)
+    assert not toppled(ctx, TagSettings()).holds  # whatever way a round target has rolled
