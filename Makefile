@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,21 @@ robosuite-objects: setup  ## import robosuite's six object meshes as a user cata
 	$(BIN)/scenegen generate pipelines/robosuite_objects.yaml --out runs/robosuite_batch --workers 2
 	$(BIN)/scenegen show runs/robosuite_batch
 	$(BIN)/scenegen audit runs/robosuite_batch/manifest.yaml
+
+RK_CATALOG = runs/robosuite_known/catalog.yaml
+RK_ADD = $(BIN)/scenegen assets add --catalog $(RK_CATALOG)
+
+generator-grocery: robosuite-objects  ## a generator that knows the category grocery: 2,000 reference layouts, then training (~50 min; docs/assets.md)
+	$(BIN)/scenegen reference pipelines/reference_grocery.yaml --out runs/reference_grocery.parquet --workers 2
+	$(BIN)/scenegen train --data runs/reference_grocery.parquet --out runs/generator_grocery
+
+bench-user-assets: setup  ## user assets with the generator: known categories; a new one too with CHECKPOINT=runs/generator_grocery (docs/assets.md)
+	rm -rf runs/robosuite_known
+	$(RK_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/can.obj --category can --name rs_can --mass 0.35 --texture $(ROBOSUITE_OBJECTS)/textures/soda.png
+	$(RK_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/bottle.obj --category bottle --name rs_bottle --mass 0.3 --texture $(ROBOSUITE_OBJECTS)/textures/glass.png
+	$(RK_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/cereal.obj --category box --name rs_cereal --mass 0.4 --texture $(ROBOSUITE_OBJECTS)/textures/cereal.png
+	$(RK_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/milk.obj --category box --name rs_milk --mass 0.5 --texture $(ROBOSUITE_OBJECTS)/textures/ceramic.png
+	$(BIN)/python benchmarks/user_assets.py --n 30 $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
 test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included)
 	$(BIN)/python -m pytest -q
