@@ -21,11 +21,12 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Sequence
+from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from scenegen.assets.catalog import Catalog, load_catalog
+from scenegen.assets.catalog import Catalog, load_catalog, load_catalogs
 from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
 from scenegen.env.scenes import EnvScene
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
@@ -125,8 +126,9 @@ class SceneEnv(ManipulationEnv):
 
     def _initialize_sim(self, xml_string=None):
         scene = self.scene
+        catalog = load_catalogs(list(map(Path, scene.catalogs))) if scene.catalogs else self.catalog
         spec = world.build_world(
-            self.catalog,
+            catalog,
             scene.objects,
             scene.furniture,
             scene.lighting,

@@ -52,6 +52,7 @@ class EnvScene:
     robot_pose: tuple[float, ...]
     tags: dict[str, bool] = field(default_factory=dict)
     path: Path | None = None  # the scene directory of a stored scene
+    catalogs: tuple[str, ...] = ()  # the user catalogs its assets come from (scene.json provenance)
 
     @property
     def segmentation(self) -> dict[str, int]:
@@ -78,6 +79,7 @@ def stored_scene(scene_dir: Path, source: str | None = None) -> EnvScene:
         for cam in record.cameras
     )
     objects = tuple(ObjectPlacement(**o.model_dump(exclude={"moved", "rotated"})) for o in record.objects)
+    catalogs = _user_catalogs(scene_dir, record.provenance.get("catalogs") or [])
     return EnvScene(
         scene_id=record.scene_id,
         origin="synthetic",
@@ -90,7 +92,30 @@ def stored_scene(scene_dir: Path, source: str | None = None) -> EnvScene:
         robot_pose=tuple(record.condition.robot_pose),
         tags={name: value.holds for name, value in record.tags.items()},
         path=scene_dir,
+        catalogs=catalogs,
     )
+
+
+def _user_catalogs(scene_dir: Path, recorded: list) -> tuple[str, ...]:
+    """The user catalogs (paths) a stored scene was made with, each checked against the sha256 it
+    recorded (SceneSourceError naming the catalog if missing or changed since)."""
+    from scenegen.assets.catalog import CatalogError, load_catalog
+
+    paths = []
+    for entry in recorded[1:]:  # the first is the bundled catalog
+        try:
+            catalog = load_catalog(Path(entry["path"]))
+        except CatalogError as exc:
+            raise SceneSourceError(
+                f"{scene_dir}: made with the user catalog {entry['path']}: {exc}"
+            ) from None
+        if catalog.sha256 != entry["sha256"]:
+            raise SceneSourceError(
+                f"{scene_dir}: its user catalog {entry['path']} changed since it was made; "
+                "restore that catalog, or generate the scene again"
+            )
+        paths.append(entry["path"])
+    return tuple(paths)
 
 
 def batch_scenes(batch: Path, source: str | None = None) -> list[EnvScene]:

@@ -161,6 +161,11 @@ def state_features(env) -> np.ndarray:
     model, data = env.sim.model._model, env.sim.data._data
     scene = env.scene
     category = next(o.category for o in scene.objects if o.name == scene.target)
+    if category not in CATEGORIES:  # a user catalog's: no one-hot column, so no state to give
+        raise ValueError(
+            f"target category {category!r}: the state features know {', '.join(CATEGORIES)} (the "
+            "bundled catalog's) and cannot describe a target of a user category"
+        )
     position, quat = env.target_pose()
     up = 1 - 2 * (quat[1] ** 2 + quat[2] ** 2)  # z of the body's z axis
     edge = min(TABLE_HALF[0] - abs(position[0]), TABLE_HALF[1] - abs(position[1]))

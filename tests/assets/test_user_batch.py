@@ -88,3 +88,17 @@ def test_the_batch_and_the_user_catalog_pass_the_audit(robosuite_batch, monkeypa
     assert main(["audit", str(batch / "manifest.yaml")]) != 0
     assert "rs_bread/notes.txt" in capsys.readouterr().out
     stray.unlink()
+
+
+def test_the_batch_exports_and_labels_like_a_bundled_one(robosuite_batch, monkeypatch):
+    import pyarrow.parquet as pq
+
+    work, batch = robosuite_batch
+    monkeypatch.chdir(work)  # the scenes name their user catalog relative to where they were made
+    assert main(["export", str(batch), "--format", "webdataset", "--out", str(work / "wds")]) == 0
+    assert any((work / "wds").glob("*.tar"))
+    labels = work / "labels.parquet"
+    argv = ["label", str(batch), "--out", str(labels), "--limit", "1", "--primitives", "top_grasp", "--quiet"]
+    assert main(argv) == 0
+    rows = pq.read_table(labels).to_pylist()
+    assert len(rows) == 1 and rows[0]["target_category"] == "grocery"

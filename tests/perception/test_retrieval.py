@@ -159,3 +159,12 @@ def test_a_candidate_checkpoint_whose_weights_do_not_load_is_a_one_line_error(tm
     (tmp_path / "model.safetensors").write_bytes(b"not weights")
     with pytest.raises(CheckpointError, match="model.safetensors: does not load"):
         RetrievalPerception.load(tmp_path)
+
+
+def test_a_category_the_committed_head_does_not_know_is_a_one_line_error():
+    from scenegen.paths import ASSETS_DIR
+    from scenegen.perception.retrieval.candidates import CandidatePicker
+
+    picker = CandidatePicker(ASSETS_DIR / "retrieval" / "baseline")
+    with pytest.raises(ValueError, match="'grocery': this retrieval head knows .*scenegen retrieval train"):
+        picker.predict(None, None, "grocery")  # refused before any frame is read

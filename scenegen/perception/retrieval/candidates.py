@@ -239,6 +239,11 @@ class CandidatePicker:
 
     def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:
         """The predicted target region per camera of ``frames`` (``robot``: see frame_candidates)."""
+        if category not in self.model.categories:  # a user catalog's category, say
+            raise ValueError(
+                f"category {category!r}: this retrieval head knows {', '.join(self.model.categories)}; "
+                "train one on scenes that hold it (scenegen retrieval train), or use the oracle"
+            )
         candidates = frame_candidates(frames, scene, robot)
         empty = np.zeros(frames.depth.shape[1:], bool)
         predictions = [Prediction(empty, 0.0) for _ in frames.cameras]
