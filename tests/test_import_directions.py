@@ -94,8 +94,6 @@ FAMILIES = (
             "scenegen.data",
             "scenegen.audit",
             "scenegen.assets.authoring",
-            "scenegen.assets.importer",
-            "scenegen.assets.meshes",
             "scenegen.assets.measure",
         ),
     ),

@@ -73,7 +73,7 @@ def add_commands(sub) -> None:
 
 
 def _catalog_argument(parser, text: str) -> None:
-    from scenegen.assets.importer import USER_CATALOG
+    from scenegen.data.asset_import import USER_CATALOG
 
     parser.add_argument("--catalog", type=Path, default=USER_CATALOG, help=text)
 
@@ -91,7 +91,7 @@ def _catalogs_argument(parser) -> None:
 
 def _catalogs(args):
     from scenegen.assets.catalog import load_catalogs
-    from scenegen.assets.importer import USER_CATALOG
+    from scenegen.data.asset_import import USER_CATALOG
 
     if args.catalogs is None:
         args.catalogs = [USER_CATALOG] if USER_CATALOG.is_file() else []
@@ -100,8 +100,8 @@ def _catalogs(args):
 
 def _add(args) -> int:
     from scenegen.assets.catalog import CatalogError
-    from scenegen.assets.importer import ImportOptions, add_asset
-    from scenegen.assets.meshes import MeshImportError
+    from scenegen.data.asset_import import ImportOptions, add_asset
+    from scenegen.data.asset_meshes import MeshImportError
 
     if args.name and len(args.meshes) > 1:
         return fail(f"--name {args.name}: give one MESH with --name (each asset needs its own name)")

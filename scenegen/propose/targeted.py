@@ -190,7 +190,8 @@ class TargetedProposer:
         target = scene.objects[scene.target]
         asset = self.catalog.get(target.asset)
         if not non_upright(asset):
-            options = [a for a in self.catalog.of_category(target.category) if non_upright(a)]
+            allowed = [a for a in self.procedural.allowed if a.category == target.category and non_upright(a)]
+            options = allowed or [a for a in self.catalog.of_category(target.category) if non_upright(a)]
             asset = options[int(rng.integers(len(options)))]
         poses = non_upright(asset)
         pose = poses[int(rng.integers(len(poses)))]

@@ -114,7 +114,7 @@ BAD_RECIPES: dict[str, tuple[Mutation, Callable[[], list[str]]]] = {
     ),
     "unknown_key_of_targeted_proposer": (
         lambda recipe: recipe["proposer"].update(kind="targeted", occluder=2),
-        lambda: ["proposer.occluder", "did you mean occluders", "n_objects", "(25 keys)"],
+        lambda: ["proposer.occluder", "did you mean occluders", "n_objects", "(26 keys)"],
     ),
     "unknown_occluder_asset": (
         lambda recipe: recipe["proposer"].update(kind="targeted", occluders=["wall"]),

@@ -12,8 +12,8 @@ import trimesh
 import yaml
 
 from scenegen.assets.catalog import load_catalog
-from scenegen.assets.importer import ImportOptions, add_asset
 from scenegen.cli import main
+from scenegen.data.asset_import import ImportOptions, add_asset
 from scenegen.diffusion.encoding import matched_pose
 from scenegen.paths import PROJECT_ROOT
 from scenegen.propose.base import PROPOSERS

@@ -44,8 +44,8 @@ from scenegen.assets.measure import (
     resting_poses,
     sha256_bytes,
 )
-from scenegen.assets.meshes import UNITS, MeshImportError, UserMesh, obj_text, read_user_mesh
 from scenegen.core.files import sha256_file
+from scenegen.data.asset_meshes import UNITS, MeshImportError, UserMesh, obj_text, read_user_mesh
 
 USER_CATALOG = Path("user_assets") / CATALOG_FILE  # relative to the working directory
 NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")

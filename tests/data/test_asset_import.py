@@ -16,10 +16,10 @@ import pytest
 import trimesh
 
 from scenegen.assets.catalog import CatalogError, load_catalog, load_catalogs, read_obj
-from scenegen.assets.importer import ImportOptions, add_asset
-from scenegen.assets.meshes import VISUAL_MAX_FACES
 from scenegen.audit.manifest import _Audit as Audit
 from scenegen.cli import main
+from scenegen.data.asset_import import ImportOptions, add_asset
+from scenegen.data.asset_meshes import VISUAL_MAX_FACES
 
 BOX_CORNERS = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
 BOX_QUADS = [(1, 3, 4, 2), (5, 6, 8, 7), (1, 2, 6, 5), (3, 7, 8, 4), (1, 5, 7, 3), (2, 4, 8, 6)]  # outward
@@ -213,7 +213,7 @@ def test_an_import_stopped_between_its_two_renames_leaves_the_catalog_and_is_cle
     def killed(*args):
         raise OSError("killed")
 
-    monkeypatch.setattr("scenegen.assets.importer.os.replace", killed)
+    monkeypatch.setattr("scenegen.data.asset_import.os.replace", killed)
     with pytest.raises(OSError, match="killed"):
         add_asset(mesh, ImportOptions("crate", units="cm"), catalog)
     assert catalog.read_bytes() == before and (catalog.parent / "crate").is_dir()  # moved, not listed
