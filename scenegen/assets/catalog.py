@@ -90,9 +90,14 @@ class Asset(BaseModel):
     orientation_free: bool = False
     root: Path | None = Field(default=None, exclude=True)
 
+    @property
+    def folder(self) -> Path:
+        """Its catalog's folder (the bundled one for an asset built outside a loader)."""
+        return self.root or ASSETS_DIR
+
     def file(self, relative: str) -> Path:
         """A file of this asset (its mesh, a part, its texture), resolved in its catalog's folder."""
-        return (self.root or ASSETS_DIR) / relative
+        return self.folder / relative
 
     def upright_pose(self) -> int | None:
         """Index of the upright resting pose, if the asset has one."""
@@ -152,7 +157,7 @@ def load_catalog(root: Path = ASSETS_DIR) -> Catalog:
     """Load and validate one catalog: ``root/catalog.yaml``, or ``root`` itself when it is a file
     (cached per location). Its assets' files resolve in the catalog file's folder."""
     file = catalog_file(root)
-    bundled = file.resolve() == (ASSETS_DIR / CATALOG_FILE).resolve()
+    bundled = file.resolve() == _bundled_file()
     if not file.is_file():
         remedy = "run `make assets` to build it" if bundled else "create it with `scenegen assets add`"
         raise CatalogError(f"{file}: asset catalog missing; {remedy}")
@@ -228,7 +233,7 @@ def validate_asset_files(asset: Asset) -> None:
         "rebuild with `make assets`" if asset.source is None else "import it again with `scenegen assets add`"
     )
     for relative in (asset.mesh, *asset.parts.files, *([asset.texture] if asset.texture else [])):
-        if not confined_to(asset.root or ASSETS_DIR, relative):
+        if not confined_to(asset.folder, relative):
             raise CatalogError(f"asset {asset.name!r}: {relative} is outside its catalog's folder; {remedy}")
     if not mesh_file.is_file():
         raise CatalogError(f"{where}: mesh file missing; {remedy}")
@@ -294,7 +299,7 @@ def convex_part_vertices(catalog: Catalog, asset_name: str) -> tuple[np.ndarray,
 
 def part_vertices(asset: Asset) -> tuple[np.ndarray, ...]:
     """Vertices (V, 3) of each convex part of ``asset``, in its body frame (read once per process)."""
-    return part_vertices_at(asset.root or ASSETS_DIR, asset.parts.files)
+    return part_vertices_at(asset.folder, asset.parts.files)
 
 
 @functools.lru_cache(maxsize=256)

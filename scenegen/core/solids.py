@@ -102,7 +102,7 @@ def object_solid(catalog: Catalog, obj: ObjectPlacement) -> Solid:
     pos = np.asarray(obj.position, float)
     pieces, corners, polytopes = [], [], []
     for i in range(len(asset.parts.files)):
-        verts, faces = _convex_geometry(asset.root or catalog.root, asset.parts.files, i, obj.scale)
+        verts, faces = _convex_geometry(asset.folder, asset.parts.files, i, obj.scale)
         pieces.append(fcl.CollisionObject(fcl_convex(verts, faces), fcl.Transform(rot, pos)))
         corners.append(verts @ rot.T + pos)
         polytopes.append(Polytope.of(corners[-1], faces))

@@ -320,35 +320,21 @@ def checked_resting_poses(
 def _drop_model(parts: list[trimesh.Trimesh], mass: dict, friction: float):
     import mujoco
 
-    from scenegen.sim.world import CONTACT_OPTIONS, OBJECT_CONDIM, TIMESTEP
+    from scenegen.sim import world
 
+    # Settling's solver options but multiccd (not set here when the committed measurements were made).
     spec = mujoco.MjSpec()
-    spec.option.timestep = TIMESTEP
+    spec.option.timestep = world.TIMESTEP
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
-    spec.option.impratio = CONTACT_OPTIONS["impratio"]
+    spec.option.impratio = world.CONTACT_OPTIONS["impratio"]
     spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[1, 1, 0.1], friction=[0.8, 0.005, 0.0001])
     body = spec.worldbody.add_body(name="object")
     body.add_freejoint()
-    inertia = np.asarray(mass["inertia"])
-    body.explicitinertial = True
-    body.mass = mass["mass"]
-    body.fullinertia = [
-        inertia[0, 0],
-        inertia[1, 1],
-        inertia[2, 2],
-        inertia[0, 1],
-        inertia[0, 2],
-        inertia[1, 2],
-    ]
+    world.set_inertial(body, mass["mass"], mass["inertia"])
     for i, part in enumerate(parts):
         spec.add_mesh(name=f"part{i}", uservert=np.asarray(part.vertices, float).ravel().tolist())
         body.add_geom(
-            type=mujoco.mjtGeom.mjGEOM_MESH,
-            meshname=f"part{i}",
-            mass=0,
-            condim=OBJECT_CONDIM,
-            margin=CONTACT_OPTIONS["object_margin"],
-            friction=[friction, CONTACT_OPTIONS["torsional_friction"], CONTACT_OPTIONS["rolling_friction"]],
+            type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"part{i}", mass=0, **world.object_contact(friction)
         )
     return spec.compile()

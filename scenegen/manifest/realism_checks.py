@@ -105,10 +105,10 @@ def layout_checks(
 ) -> list[RealismCheck]:
     """``layout_c2st`` and ``layout_mmd`` of layout ``rows`` against the reference subset of the
     request. Fewer than 5 rows (the C2ST's folds) give ``insufficient`` checks with value 0."""
-    from scenegen.analysis.realism import c2st, feature_categories, feature_matrix, mmd
+    from scenegen.analysis.realism import c2st, feature_matrix, mmd
 
     subset, description = reference_subset(reference_rows(reference), condition, unconditional)
-    unknown = sorted({o["category"] for row in rows for o in row["objects"]} - set(feature_categories()))
+    unknown = unknown_categories(rows)
     if unknown:  # objects of a user catalog: the reference set has no layouts to compare them with
         subset, description = [], f"none: categories {', '.join(unknown)} are not in the reference set"
     ref = RealismReference(source=_relative(reference), sha256=sha256_file(reference), subset=description)
@@ -145,6 +145,13 @@ def layout_checks(
             **common,
         ),
     ]
+
+
+def unknown_categories(rows: list[dict]) -> list[str]:
+    """Categories of the layout ``rows`` that the reference set does not hold (a user catalog's)."""
+    from scenegen.analysis.realism import feature_categories
+
+    return sorted({o["category"] for row in rows for o in row["objects"]} - set(feature_categories()))
 
 
 def image_check(
@@ -191,14 +198,11 @@ def image_check(
 
 def batch_realism(batch: Path, config, batch_sha: str) -> list[RealismCheck]:
     """Every realism check of a batch written by ``run_batch`` with recipe ``config``."""
-    from scenegen.analysis.realism import feature_categories
-
     unconditional = bool(getattr(config.proposer, "unconditional", False))
     rows = batch_layout_rows(batch)
     checks = layout_checks(rows, batch_sha, config.condition, unconditional, config.seed)
     if config.render:
-        unknown = sorted({o["category"] for row in rows for o in row["objects"]} - set(feature_categories()))
-        checks.append(image_check(batch, batch_sha, unknown=unknown))
+        checks.append(image_check(batch, batch_sha, unknown=unknown_categories(rows)))
     return checks
 
 

@@ -207,18 +207,7 @@ def _add_object(spec: mujoco.MjSpec, asset: Asset, obj: ObjectPlacement) -> None
     s = obj.scale
     body = spec.worldbody.add_body(name=obj.name, pos=obj.position, quat=obj.quat)
     body.add_freejoint(name=f"{obj.name}_joint")
-    inertia = np.asarray(asset.inertia) * s**5
-    body.explicitinertial = True
-    body.mass = asset.mass * s**3
-    body.ipos = [0, 0, 0]
-    body.fullinertia = [
-        inertia[0, 0],
-        inertia[1, 1],
-        inertia[2, 2],
-        inertia[0, 1],
-        inertia[0, 2],
-        inertia[1, 2],
-    ]
+    set_inertial(body, asset.mass * s**3, np.asarray(asset.inertia) * s**5)
     visual, parts = _mesh_names(asset, s)
     body.add_geom(
         name=f"{obj.name}_visual",
@@ -239,14 +228,34 @@ def _add_object(spec: mujoco.MjSpec, asset: Asset, obj: ObjectPlacement) -> None
             group=COLLISION_GROUP,
             rgba=[0.5, 0.5, 0.5, 0.3],
             mass=0,
-            condim=OBJECT_CONDIM,
-            margin=CONTACT_OPTIONS["object_margin"],
-            friction=[
-                asset.friction,
-                CONTACT_OPTIONS["torsional_friction"],
-                CONTACT_OPTIONS["rolling_friction"],
-            ],
+            **object_contact(asset.friction),
         )
+
+
+def set_inertial(body, mass: float, inertia) -> None:
+    """Give ``body`` an explicit mass (kg) and inertia tensor (3, 3; kg m^2 about its origin, the
+    centre of mass): the mesh geoms carry none (shared/PITFALLS.md)."""
+    inertia = np.asarray(inertia)
+    body.explicitinertial = True
+    body.mass = mass
+    body.ipos = [0, 0, 0]
+    body.fullinertia = [
+        inertia[0, 0],
+        inertia[1, 1],
+        inertia[2, 2],
+        inertia[0, 1],
+        inertia[0, 2],
+        inertia[1, 2],
+    ]
+
+
+def object_contact(friction: float) -> dict:
+    """The contact attributes of an object's collision geoms (``CONTACT_OPTIONS``), as add_geom keywords."""
+    return {
+        "condim": OBJECT_CONDIM,
+        "margin": CONTACT_OPTIONS["object_margin"],
+        "friction": [friction, CONTACT_OPTIONS["torsional_friction"], CONTACT_OPTIONS["rolling_friction"]],
+    }
 
 
 def _add_lighting(spec: mujoco.MjSpec, lighting: Lighting) -> None:
