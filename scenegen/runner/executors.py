@@ -71,9 +71,23 @@ def ordered_outcomes(
     threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
     try:
         initargs = (config.model_dump_json(), True, export, shared_state(config))
-        yield from ordered_map(work, proposals, workers, init_worker, initargs, backend)
+        with one_blas_thread():
+            yield from ordered_map(work, proposals, workers, init_worker, initargs, backend)
     finally:
         _torch_threads(threads)
+
+
+def one_blas_thread():
+    """A context in which numpy's BLAS runs on one thread (threadpoolctl).
+
+    numpy's OpenBLAS starts a thread per core; the proposer's and the checks' small products (the
+    separating-axis tests' (V, 3) x (3, A)) then cost more CPU in thread hand-offs than in
+    arithmetic: the diffusion proposer took 105 ms of CPU per proposal ("retrieve the can
+    clutter") with the default threads and 62 ms with one (benchmarks/proposer_cpu.py). Where a
+    process shares the cores with workers, those spare threads only take them from the workers."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def ordered_map(

@@ -259,6 +259,9 @@ def init_worker(config_json: str, pooled: bool = False, export: bool = True, sco
     if pooled:
         # Mesa's llvmpipe rasterizes on every core by default; with one worker per core that thrashes.
         os.environ.setdefault("LP_NUM_THREADS", "1")
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=1, user_api="blas")  # one worker per core (executors.one_blas_thread)
     config = validate_config(json.loads(config_json))
     if scorer is not None:
         from scenegen.analysis.scene_score import install_scorer

@@ -305,3 +305,37 @@ def test_penetration_depth_of_two_cubes():
     a = solids.Polytope(cube, axes, axes)
     b = solids.Polytope(cube + [0.07, 0.01, 0.0], axes, axes)
     assert solids.penetration_depth(a, b) == pytest.approx(0.03)
+
+
+def test_unique_rows_is_numpys_unique():
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        rows = np.round(rng.normal(size=(int(rng.integers(1, 40)), int(rng.integers(2, 4)))), 1)
+        rows[rng.random(rows.shape) < 0.3] = 0.0  # ties in the first columns
+        assert np.array_equal(solids.unique_rows(rows), np.unique(rows, axis=0))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_translated_solid_is_the_rebuilt_one_and_its_overlap_depth_the_signed_distance(catalog, seed):
+    """What the overlap projection uses (MovableSolid, overlap_depth) against what the check uses
+    (object_solid, signed_distance): the same vertices bit for bit, the same depth of overlap."""
+    rng = np.random.default_rng(seed)
+    mug = solids.object_solid(catalog, place(catalog, "mug", "mug", 0.0, 0.0, pose=2))
+    can = place(catalog, "can", "soup_can", 0.0, 0.0, pose=1, yaw=rng.uniform(-math.pi, math.pi))
+    movable = solids.MovableSolid.of(catalog, can)
+    seen = set()
+    for _ in range(40):
+        x, y = rng.uniform(-0.12, 0.12, size=2)
+        position = (float(x), float(y), can.position[2])
+        rebuilt = solids.object_solid(catalog, can.model_copy(update={"position": position}))
+        moved = movable.at(position)
+        for p, q in zip(rebuilt.polytopes, moved.polytopes, strict=True):
+            assert np.array_equal(p.verts, q.verts)
+            assert np.array_equal(p.normals, q.normals) and np.array_equal(p.edges, q.edges)
+        distance, depth = solids.signed_distance(rebuilt, mug), solids.overlap_depth(moved, mug)
+        if distance < 0:
+            assert depth == -distance
+        else:
+            assert depth == 0.0
+        seen.add(distance < -1e-4)
+    assert seen == {True, False}  # both overlapping and separated placements were tried
