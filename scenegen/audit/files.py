@@ -177,9 +177,19 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
         audit.violation(
             where, "rejections", f"rejections_by_label {source.rejections_by_label}, the log has {labels}"
         )
-    twice = [i for i, n in Counter(r["proposal_index"] for r in [*index, *rejections]).items() if n > 1]
+    # A proposal index ends once (a scene or a rejection without `repaired`); each of its repairs is
+    # one more row with its own attempt number (propose/repair.py).
+    ends = [r for r in rejections if not r.get("repaired")]
+    twice = [i for i, n in Counter(r["proposal_index"] for r in [*index, *ends]).items() if n > 1]
+    tries = Counter((r["proposal_index"], r.get("attempt", 0)) for r in rejections)
+    twice += [i for (i, _), n in tries.items() if n > 1]
     if twice:
-        audit.violation(where, "count", f"proposal indices {sorted(twice)[:5]} appear more than once")
+        audit.violation(where, "count", f"proposal indices {sorted(set(twice))[:5]} appear more than once")
+    unfinished = sorted(
+        {r["proposal_index"] for r in rejections} - {r["proposal_index"] for r in [*index, *ends]}
+    )
+    if unfinished:
+        audit.violation(where, "count", f"proposal indices {unfinished[:5]} were repaired but never ended")
     ids = Counter(row.get("scene_id") for row in index)
     for scene_id in sorted(str(s) for s, n in ids.items() if n > 1):
         audit.violation(f"{where}: {scene_id}", "count", f"listed {ids[scene_id]} times in {INDEX}")

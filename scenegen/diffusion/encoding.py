@@ -80,6 +80,12 @@ def _onto(surface: layout.Surface, xy: np.ndarray, half: Sequence[float]) -> np.
     return np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]]) + surface.center
 
 
+def _decoded_slot(name: str) -> int | None:
+    """The slot an object name of :meth:`SceneEncoding.decode` (``obj<slot>_<asset>``) names, or None."""
+    head, _, rest = name.partition("_")
+    return int(head[3:]) if head.startswith("obj") and head[3:].isdigit() and rest else None
+
+
 def _onehot(index: int, n: int) -> np.ndarray:
     v = -np.ones(n)
     v[index] = 1.0
@@ -180,6 +186,70 @@ class SceneEncoding:
             token[self.yaw_cols] = (math.cos(yaw), math.sin(yaw))
             token[self.target_col] = 1.0 if o["name"] == row["target"] else -1.0
         return tokens, self._scene_token(row)
+
+    def encode_proposal(self, proposal: SceneProposal) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+        """Tokens of a proposal's layout, and the slot of each object by name: an object named as
+        decoding names it (``obj<slot>_<asset>``) keeps that slot, so a repaired scene's objects keep
+        their names; others fill the free slots in order. Layouts the encoding cannot hold (more
+        objects than slots, an asset the checkpoint does not know) raise ValueError."""
+        wanted = [_decoded_slot(o.name) for o in proposal.objects]
+        taken = {s for s in wanted if s is not None and s < self.slots}
+        free = iter(s for s in range(self.slots) if s not in taken)
+        slot_of, seen = {}, set()
+        for obj, slot in zip(proposal.objects, wanted, strict=True):
+            if slot is None or slot >= self.slots or slot in seen:
+                slot = next(free, None)
+                if slot is None:
+                    raise ValueError(f"proposal {proposal.index}: more objects than {self.slots} slots")
+            seen.add(slot)
+            slot_of[obj.name] = slot
+        for obj in proposal.objects:
+            if obj.asset not in self.assets:
+                raise ValueError(f"proposal {proposal.index}: {obj.asset} is not an asset of this encoding")
+        row = {
+            "index": proposal.index,
+            "target": proposal.target,
+            "objects": [
+                {
+                    "name": o.name,
+                    "asset": o.asset,
+                    "support": o.support,
+                    "position": o.position,
+                    "quat": o.quat,
+                }
+                for o in sorted(proposal.objects, key=lambda o: slot_of[o.name])
+            ],
+            "furniture": [
+                {"kind": f.kind, "x": f.position[0], "y": f.position[1]} for f in proposal.furniture
+            ],
+            "ambient": float(np.mean(proposal.lighting.ambient)),
+            "lights": [light.model_dump() for light in proposal.lighting.lights],
+        }
+        tokens, scene = self.encode_row(row)
+        placed = -np.ones_like(tokens)
+        for k, obj in enumerate(row["objects"]):
+            placed[slot_of[obj["name"]]] = tokens[k]
+        return placed, scene, slot_of
+
+    def regenerate_masks(
+        self, slot_of: dict[str, int], parts: Sequence[str]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Boolean masks (slots, object_width), (scene_width): True where a repair re-samples
+        ``parts`` (object names of ``slot_of``, ``furniture``, ``lights``). An object keeps its
+        presence and target flag (the scene keeps its objects and its target), everything else of
+        its token is re-sampled; ``furniture``: the furniture's presence and offsets; ``lights``:
+        the ambient level and the light slots."""
+        objects = np.zeros((self.slots, self.object_width), bool)
+        scene = np.zeros(self.scene_width, bool)
+        lights_start = 3 * len(FURNITURE_KINDS)
+        for part in parts:
+            if part == "furniture":
+                scene[:lights_start] = True
+            elif part == "lights":
+                scene[lights_start : self.count_cols.start] = True
+            else:
+                objects[slot_of[part], 1 : self.target_col] = True
+        return objects, scene
 
     def _scene_token(self, row: dict) -> np.ndarray:
         out = []

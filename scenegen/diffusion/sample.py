@@ -20,6 +20,7 @@ initial noise, which the caller draws from its own generator per sample.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -67,6 +68,30 @@ def ddim_scheduler(train_config: dict, steps: int):
     return scheduler
 
 
+@dataclass(frozen=True)
+class Inpaint:
+    """What :func:`sample` keeps of a known scene (RePaint-style inpainting: Lugmayr et al. 2022).
+
+    ``objects`` (B, slots, object_width) and ``scene`` (B, scene_width): the known clean tokens;
+    ``regenerate_objects`` / ``regenerate_scene``: boolean masks of the same shapes, True where the
+    model samples afresh, False where the known value is held. ``noise``: (steps + 1, B, D) standard
+    normal draws, one per step, that noise the known part to each step's level (drawn by the caller
+    from each row's own generator, so a row does not depend on its batch)."""
+
+    objects: torch.Tensor
+    scene: torch.Tensor
+    regenerate_objects: torch.Tensor
+    regenerate_scene: torch.Tensor
+    noise: torch.Tensor
+
+    def flat(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The known clean scene and the regenerate mask, flattened to (B, D) as :func:`sample`'s x."""
+        b = len(self.objects)
+        known = torch.cat([self.objects.reshape(b, -1), self.scene], dim=1)
+        mask = torch.cat([self.regenerate_objects.reshape(b, -1), self.regenerate_scene], dim=1)
+        return known, mask
+
+
 def sample(
     model: Denoiser,
     train_config: dict,
@@ -77,26 +102,45 @@ def sample(
     steps: int = 20,
     cost: Cost | None = None,
     cost_weight: float = 0.0,
+    inpaint: Inpaint | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Denoise the initial noise (B, slots, object_width), (B, scene_width) under ``condition``.
 
-    Rows whose condition is the null condition are unconditional samples whatever ``w``."""
+    Rows whose condition is the null condition are unconditional samples whatever ``w``. With
+    ``inpaint``, after every step the held part of x is replaced by the known scene noised to the
+    next step's level, the cost gradient moves only the regenerated part, and the result holds the
+    known values exactly where they are held."""
     scheduler = ddim_scheduler(train_config, steps)
     alphas = scheduler.alphas_cumprod
     cfg = model.config
     b, n_obj = len(noise_objects), cfg.slots * cfg.object_width
     x = torch.cat([noise_objects.reshape(b, -1), noise_scene], dim=1)
-    for t in scheduler.timesteps:
+    known, regenerate = inpaint.flat() if inpaint is not None else (None, None)
+    timesteps = [int(t) for t in scheduler.timesteps]
+    if known is not None:
+        x = torch.where(regenerate, x, _noised(known, alphas[timesteps[0]], inpaint.noise[0]))
+    for i, t in enumerate(timesteps):
         objects, scene = x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]
-        tt = torch.full((b,), int(t), dtype=torch.long)
+        tt = torch.full((b,), t, dtype=torch.long)
         with torch.no_grad():
             eps_o, eps_s = guided_eps(model, objects, scene, tt, condition, w, alphas)
         eps = torch.cat([eps_o.reshape(b, -1), eps_s], dim=1)
         if cost is not None and cost_weight > 0:
-            a = alphas[int(t)]
+            a = alphas[t]
             x0 = ((x - (1 - a).sqrt() * eps) / a.sqrt()).detach().requires_grad_(True)
             value = cost(x0[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x0[:, n_obj:]).sum()
             (grad,) = torch.autograd.grad(value, x0)
+            if regenerate is not None:
+                grad = grad * regenerate
             eps = (x - a.sqrt() * (x0.detach() - cost_weight * grad)) / (1 - a).sqrt()
-        x = scheduler.step(eps, int(t), x, eta=0.0).prev_sample
+        x = scheduler.step(eps, t, x, eta=0.0).prev_sample
+        if known is not None:
+            last = i + 1 == len(timesteps)
+            held = known if last else _noised(known, alphas[timesteps[i + 1]], inpaint.noise[i + 1])
+            x = torch.where(regenerate, x, held)
     return x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]
+
+
+def _noised(x0: torch.Tensor, alpha_bar: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """x0 diffused to the level of cumulative alpha ``alpha_bar``: q(x_t | x0) with the given noise."""
+    return alpha_bar.sqrt() * x0 + (1 - alpha_bar).sqrt() * noise

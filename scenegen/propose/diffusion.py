@@ -53,6 +53,8 @@ class DiffusionSettings(AssetChoice):
     cost_weight: float = Field(0.1, ge=0.0)  # cost guidance step (scenegen/diffusion/cost.py); 0: off
     request_cost: float = Field(10.0, ge=0.0)  # weight of the soft required predicates within the cost
     unconditional: bool = False  # sample the null condition (the model's own distribution)
+    repairs: int = Field(0, ge=0, le=64)  # re-samplings of a failed proposal's culprits (propose/repair.py)
+    repair_width: int = Field(1, ge=1, le=8)  # repairs per expansion: 1 a chain, more a best-first search
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
@@ -86,6 +88,7 @@ class DiffusionSettings(AssetChoice):
 
 
 GROUP = 8  # proposals sampled together: indices 8k .. 8k + 7, whatever the caller asks for
+REPAIR_STREAM = 7  # SeedSequence([seed, index, REPAIR_STREAM, attempt]): a repair's own noise
 
 
 @functools.lru_cache(maxsize=4)
@@ -193,6 +196,68 @@ class DiffusionProposer:
             self._group = self._sample_group(condition, index // GROUP, seed)
             self._group_key = key
         return self._group[index % GROUP]
+
+    def repair(self, parent: SceneProposal, rejection, attempt: int) -> SceneProposal | None:
+        """Attempt ``attempt`` of ``parent``'s index: the parts ``rejection`` blames
+        (``repair.resampled_for``) re-denoised with the rest of the scene held fixed (inpainting),
+        then decoded and separated like a first-pass proposal; None when the rejection is not
+        repaired or the scene cannot be encoded. Its noise comes from
+        SeedSequence([seed, index, REPAIR_STREAM, attempt]) alone, so a repair does not depend on
+        the order repairs are made in."""
+        import torch
+
+        from scenegen.diffusion.sample import Inpaint, sample
+        from scenegen.propose.repair import repair_step, resampled_for
+
+        resampled = resampled_for(rejection, parent)
+        if not resampled:
+            return None
+        try:
+            tokens, scene, slot_of = self.encoding.encode_proposal(parent)
+        except ValueError:
+            return None
+        s, cfg = self.settings, self.model.config
+        regenerate_objects, regenerate_scene = self.encoding.regenerate_masks(slot_of, resampled)
+        stream = np.random.SeedSequence([parent.seed, parent.index, REPAIR_STREAM, attempt])
+        rng = np.random.default_rng(stream)
+        generator = torch.Generator().manual_seed(int(rng.integers(2**63)))
+        noise_o = torch.randn(1, cfg.slots, cfg.object_width, generator=generator)
+        noise_s = torch.randn(1, cfg.scene_width, generator=generator)
+        width = cfg.slots * cfg.object_width + cfg.scene_width
+        inpaint = Inpaint(
+            objects=torch.tensor(tokens, dtype=torch.float32)[None],
+            scene=torch.tensor(scene, dtype=torch.float32)[None],
+            regenerate_objects=torch.tensor(regenerate_objects)[None],
+            regenerate_scene=torch.tensor(regenerate_scene)[None],
+            noise=torch.randn(s.steps + 1, 1, width, generator=generator),
+        )
+        cost = self._cost(tuple(parent.condition.required())) if s.cost_weight > 0 else None
+        objects, scene_out = sample(
+            self.model,
+            self.config["train"],
+            self.condition_batch(parent.condition),
+            noise_o,
+            noise_s,
+            w=s.guidance,
+            steps=s.steps,
+            cost=cost,
+            cost_weight=s.cost_weight,
+            inpaint=inpaint,
+        )
+        decoded = self.encoding.decode(
+            objects[0].numpy().astype(np.float64),
+            scene_out[0].numpy().astype(np.float64),
+            parent.condition,
+            parent.cameras,
+            parent.index,
+            parent.seed,
+            substitute=self._substitute(parent.seed, parent.index),
+        )
+        proposal = decoded.proposal
+        if s.separate:
+            proposal = separate(proposal, self.catalog, max_shift=s.max_shift)
+        step = repair_step(rejection, parent, attempt, resampled)
+        return proposal.model_copy(update={"attempt": attempt, "repairs": (*parent.repairs, step)})
 
     def _sample_group(self, condition: Condition, group: int, seed: int) -> list:
         import torch

@@ -20,8 +20,8 @@ changes what they are shown.
 
 Objects are translated, never rebuilt: each keeps its pieces' rotated vertices and their normals and
 edges (``core.solids.MovableSolid``). Against rebuilding each moved
-object and fcl's signed distance this cut separating from 51 to N ms per proposal, with the same
-proposals (benchmarks/proposer_cpu.py).
+object and fcl's signed distance this cut separating from 12-53 to 4-26 ms per proposal, with the
+same proposals (benchmarks/proposer_cpu.py, one BLAS thread).
 """
 
 from __future__ import annotations

@@ -113,17 +113,8 @@ def ordered_map(
 
 
 def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
-    # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
-    # fails) breaks the pool with an error instead of being respawned forever.
-    pool = ProcessPoolExecutor(
-        workers,
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_pool_worker_start,
-        initargs=(os.getpid(), initializer, initargs),
-    )
+    pool = start_pool(workers, initializer, initargs)
     try:
-        for _ in range(workers):  # start every worker now: their start-up overlaps the first items' making
-            pool.submit(int)
         pending: deque = deque()
         for item in items:
             pending.append(pool.submit(fn, item))
@@ -132,13 +123,32 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
         while pending:
             yield pending.popleft().result()
     finally:
-        # Items still running when the caller stops early (a batch that has its n scenes) are not
-        # wanted: end their workers now rather than wait up to a proposal's time for them.
-        workers_now = list((getattr(pool, "_processes", None) or {}).values())
-        pool.shutdown(wait=False, cancel_futures=True)
-        for process in workers_now:
-            process.terminate()
-        pool.shutdown(wait=True)
+        stop_pool(pool)
+
+
+def start_pool(workers: int, initializer, initargs: tuple) -> ProcessPoolExecutor:
+    """A spawn pool of ``workers`` processes that each ran ``initializer(*initargs)``, started now."""
+    # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
+    # fails) breaks the pool with an error instead of being respawned forever.
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_pool_worker_start,
+        initargs=(os.getpid(), initializer, initargs),
+    )
+    for _ in range(workers):  # start every worker now: their start-up overlaps the first items' making
+        pool.submit(int)
+    return pool
+
+
+def stop_pool(pool: ProcessPoolExecutor) -> None:
+    """End the pool's workers now. Items still running when the caller stops early (a batch that has
+    its n scenes) are not wanted: no waiting up to a proposal's time for them."""
+    workers_now = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers_now:
+        process.terminate()
+    pool.shutdown(wait=True)
 
 
 def _pool_worker_start(coordinator: int, initializer, initargs: tuple) -> None:
@@ -289,14 +299,7 @@ class RayWorker:
 
 
 def _ray_map(fn, items, workers: int, initializer, initargs: tuple, address: str | None) -> Iterator:
-    ray = import_ray()
-    from ray.util import ActorPool
-
-    started = connect_ray(address, workers)
-    actor = ray.remote(num_cpus=1)(RayWorker)
-    shared = ray.put(initargs)  # one copy in the object store for every actor
-    actors = [actor.remote(initializer, shared) for _ in range(workers)]
-    pool = ActorPool(actors)  # hands each item to an idle actor; get_next() keeps submission order
+    pool, stop = ray_actor_pool(workers, initializer, initargs, address)
     try:
         in_flight = 0
         for item in items:
@@ -308,7 +311,24 @@ def _ray_map(fn, items, workers: int, initializer, initargs: tuple, address: str
         while pool.has_next():
             yield pool.get_next()
     finally:
+        stop()
+
+
+def ray_actor_pool(workers: int, initializer, initargs: tuple, address: str | None):
+    """A Ray ``ActorPool`` of ``workers`` :class:`RayWorker` actors (1 CPU each) that ran
+    ``initializer(*initargs)``, and the function that ends them (and the cluster, if this started it)."""
+    ray = import_ray()
+    from ray.util import ActorPool
+
+    started = connect_ray(address, workers)
+    actor = ray.remote(num_cpus=1)(RayWorker)
+    shared = ray.put(initargs)  # one copy in the object store for every actor
+    actors = [actor.remote(initializer, shared) for _ in range(workers)]
+
+    def stop() -> None:
         for a in actors:
             ray.kill(a)
         if started:
             ray.shutdown()
+
+    return ActorPool(actors), stop  # ActorPool hands each item to an idle actor

@@ -36,6 +36,32 @@ def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterat
         )
 
 
+def _outcomes(proposals, proposer, config: PipelineConfig, workers: int, backend: Backend, seconds):
+    """Per proposal index, in index order, the outcomes of its tries: one, or with the proposer's
+    ``repairs`` the first pass and its repairs (runner/repairing.py), the repairs' making timed into
+    ``seconds['propose']``."""
+    if not getattr(config.proposer, "repairs", 0):
+        return _one_try_each(ordered_outcomes(proposals, config, workers, backend=backend))
+    from scenegen.runner.repairing import repaired_outcomes
+
+    def repair(parent, rejection, attempt):
+        t0 = time.perf_counter()
+        try:
+            return proposer.repair(parent, rejection, attempt)
+        finally:
+            seconds["propose"] += time.perf_counter() - t0
+
+    return repaired_outcomes(proposals, config, workers, repair, backend=backend)
+
+
+def _one_try_each(outcomes):
+    try:
+        for outcome in outcomes:
+            yield [outcome]
+    finally:
+        outcomes.close()  # stops the pool now, not at garbage collection
+
+
 @dataclass
 class BatchSummary:
     out: Path
@@ -79,9 +105,17 @@ def run_batch(
     )
 
     proposals = _timed(_proposals(proposer, config, index), seconds)
-    outcomes = ordered_outcomes(proposals, config, workers, backend=backend)  # lazy: no pool yet
+    outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds)  # lazy: no pool yet
     try:
-        for outcome in outcomes if accepted < config.n else ():
+        for tries in outcomes if accepted < config.n else ():
+            *repaired, outcome = tries
+            t0 = time.perf_counter()
+            for rejected in repaired:  # tries that a repair followed
+                for stage, s in rejected.seconds.items():
+                    seconds[stage] += s
+                store.log_rejection(rejected.rejection.model_copy(update={"repaired": True}))
+                rejections[rejected.rejection.label] += 1
+            seconds["store"] += time.perf_counter() - t0
             index = outcome.proposal_index + 1
             for stage, s in outcome.seconds.items():
                 seconds[stage] += s

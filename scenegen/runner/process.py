@@ -32,6 +32,7 @@ class Outcome:
     """Result of processing one proposal: a record + MJCF + images, or a rejection."""
 
     proposal_index: int
+    attempt: int = 0  # the proposal's try (0: first pass; k: its k-th repair)
     record: SceneRecord | None = None
     xml: str = ""
     needed: dict[str, str] = field(default_factory=dict)
@@ -62,13 +63,13 @@ def process_proposal(
 
     ``export=False`` skips the MJCF (layout-only datasets such as the reference set do not store it).
     """
-    out = Outcome(proposal.index)
+    out = Outcome(proposal.index, proposal.attempt)
     clock = _Stopwatch(out)
     clock.start()
     checks, ok = run_checks(proposal, catalog, config.checks)
     clock.stop("check")
     if not ok:
-        out.rejection = Rejection.from_check(proposal.index, checks[-1])
+        out.rejection = Rejection.from_check(proposal.index, checks[-1], proposal.attempt)
         return out
 
     clock.start()
@@ -85,7 +86,7 @@ def process_proposal(
     checks += settled.checks
     if not settled.passed:
         failed = next(c for c in settled.checks if not c.passed)
-        out.rejection = Rejection.from_check(proposal.index, failed)
+        out.rejection = Rejection.from_check(proposal.index, failed, proposal.attempt)
         return out
 
     clock.start()
@@ -101,7 +102,7 @@ def process_proposal(
             checks.append(realism_check(proposal, objects, config.realism))
     clock.stop("tag")
     if not checks[-1].passed:
-        out.rejection = Rejection.from_check(proposal.index, checks[-1])
+        out.rejection = Rejection.from_check(proposal.index, checks[-1], proposal.attempt)
         return out
 
     segmentation: dict[str, int] = {}
@@ -143,6 +144,9 @@ def process_proposal(
             "pipeline_sha256": config.digest(),
             "catalog_sha256": catalog.sha256,
             **({"catalogs": [f.model_dump() for f in catalog.files]} if config.catalogs else {}),
+            **(
+                {"repairs": [r.model_dump(mode="json") for r in proposal.repairs]} if proposal.repairs else {}
+            ),
         },
     )
     clock.stop("store")  # record + MJCF export; file writes are added later
@@ -181,7 +185,7 @@ def _render(
         result = CheckResult(
             stage="render", check="render", passed=False, label="render_failed", detail=str(exc)[:200]
         )
-        return Rejection.from_check(proposal.index, result)
+        return Rejection.from_check(proposal.index, result, proposal.attempt)
     images: dict[str, bytes] = {}
     for cam, frame in zip(proposal.cameras, frames, strict=True):
         images.update(frames_to_files(cam.name, frame))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 
 from scenegen.schema.condition import Condition, vouch_for_objects
 
@@ -99,8 +99,22 @@ class Camera(_Value):
         return {"fx": f, "fy": f, "cx": self.width / 2, "cy": self.height / 2}
 
 
+class RepairStep(_Value):
+    """One repair on a scene's path: attempt ``attempt`` of its proposal index re-sampled ``resampled``
+    (object names, ``furniture``, ``lights``) of attempt ``parent``, which failed ``label`` at
+    ``check`` (``detail`` as its rejection row says). Attempt 0 is the first-pass proposal."""
+
+    attempt: int = Field(ge=1)
+    parent: int = Field(ge=0)
+    label: RejectionLabel
+    check: str
+    detail: str = ""
+    resampled: tuple[str, ...]
+
+
 class SceneProposal(_Value):
-    """What a proposer hands to the checks: one candidate scene."""
+    """What a proposer hands to the checks: one candidate scene. ``attempt`` > 0: a repair of the
+    proposal ``index`` (propose/repair.py), reached by ``repairs`` (first repair first)."""
 
     index: int  # position in the batch's proposal stream; decides commit order
     seed: int  # the seed this proposal's own randomness came from
@@ -110,6 +124,8 @@ class SceneProposal(_Value):
     furniture: tuple[FurniturePlacement, ...]
     lighting: Lighting
     cameras: tuple[Camera, ...]
+    attempt: int = Field(0, ge=0)
+    repairs: tuple[RepairStep, ...] = ()
 
     @model_validator(mode="wrap")
     @classmethod
@@ -130,7 +146,10 @@ class CheckResult(_Value):
 
 
 class Rejection(_Value):
-    """One row of a batch's rejection log."""
+    """One row of a batch's rejection log. ``attempt``: which try of the proposal index (0 the first
+    pass, k the k-th repair); ``repaired``: a repair of it followed, so the index's outcome is a later
+    row or scene. Both are left out of the row at their defaults (logs without repairs read as
+    before repairs existed)."""
 
     proposal_index: int
     stage: Stage
@@ -139,9 +158,20 @@ class Rejection(_Value):
     value: float | None = None
     threshold: float | None = None
     detail: str = ""
+    attempt: int = Field(0, ge=0)
+    repaired: bool = False
+
+    @model_serializer(mode="wrap")
+    def _omit_defaults(self, handler):
+        data = handler(self)
+        if not data.get("attempt"):
+            data.pop("attempt", None)
+        if not data.get("repaired"):
+            data.pop("repaired", None)
+        return data
 
     @classmethod
-    def from_check(cls, proposal_index: int, result: CheckResult) -> Rejection:
+    def from_check(cls, proposal_index: int, result: CheckResult, attempt: int = 0) -> Rejection:
         assert result.label is not None, "a passed check is not a rejection"
         return cls(
             proposal_index=proposal_index,
@@ -151,6 +181,7 @@ class Rejection(_Value):
             value=result.value,
             threshold=result.threshold,
             detail=result.detail,
+            attempt=attempt,
         )
 
 

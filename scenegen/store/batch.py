@@ -226,7 +226,7 @@ class BatchStore:
             shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
         (root / ASSETS).mkdir(exist_ok=True)
         index = recover_jsonl(root / INDEX)
-        rejections = recover_jsonl(root / REJECTIONS)
+        rejections = _unfinished_repairs_cut(root / REJECTIONS, recover_jsonl(root / REJECTIONS), index)
         indexed = {row["scene_id"] for row in index}
         for entry in root.iterdir():
             if entry.is_dir() and entry.name.startswith("scene_") and entry.name not in indexed:
@@ -283,6 +283,23 @@ class BatchStore:
             f.write(json.dumps(row, sort_keys=True) + "\n")
             f.flush()
             os.fsync(f.fileno())
+
+
+def _unfinished_repairs_cut(path: Path, rejections: list[dict], index: list[dict]) -> list[dict]:
+    """The rejection log without the rows of a proposal index whose repairs a kill interrupted (its
+    last rows say ``repaired`` and nothing of the index follows): the index is redone on resume,
+    first pass and repairs, as an uninterrupted run would have them. Rewrites the log if so."""
+    stored = {row["proposal_index"] for row in index}
+    keep = len(rejections)
+    while keep and rejections[keep - 1].get("repaired"):
+        keep -= 1
+    if keep < len(rejections) and rejections[-1]["proposal_index"] in stored:
+        return rejections  # the index ended accepted: its repairs are complete
+    if keep == len(rejections):
+        return rejections
+    kept = rejections[:keep]
+    atomic_write(path, "".join(json.dumps(row, sort_keys=True) + "\n" for row in kept))
+    return kept
 
 
 def recover_jsonl(path: Path) -> list[dict]:
