@@ -146,7 +146,23 @@ def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
         corners.append(local @ rot.T + pos)
     pts = np.concatenate(corners)
     shoulder = data.body("robot0_link1").xpos.copy()
+    discs = []
+    for c in corners:  # each geom as a disc in the table plane: centre, lowest point, radius
+        centre = (c[:, :2].min(0) + c[:, :2].max(0)) / 2
+        discs.append([*centre, c[:, 2].min(), float(np.linalg.norm(c[:, :2] - centre, axis=1).max())])
+    _ARM_DISCS[tuple(robot_pose)] = np.asarray(discs)
     return Solid("robot", tuple(pieces), pts.min(0), pts.max(0)), shoulder
+
+
+_ARM_DISCS: dict[tuple[float, ...], np.ndarray] = {}
+
+
+def arm_discs(robot_pose: tuple[float, ...]) -> np.ndarray:
+    """The arm's and gripper's collision geoms at ``robot_pose`` as discs in the table plane (G, 4):
+    x, y of the centre of the geom's box, its lowest point z, the radius that holds its box (m).
+    What the generator's soft arm clearance (diffusion/cost.py) keeps objects out of."""
+    robot_geometry(tuple(robot_pose))
+    return _ARM_DISCS[tuple(robot_pose)]
 
 
 def check_robot_clearance(

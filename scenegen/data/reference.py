@@ -22,9 +22,9 @@ import numpy as np
 from scenegen.analysis.realism import HELDOUT_EVERY, layout_row  # noqa: F401 - both are part of this module's face
 from scenegen.assets.catalog import using_catalogs
 from scenegen.core.files import sha256_file
-from scenegen.propose.base import PROPOSERS
 from scenegen.runner.config import PipelineConfig
 from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes
+from scenegen.runner.pipeline import make_proposer
 from scenegen.schema.condition import ROBOT_POSES, TAGS, TASKS, Condition
 from scenegen.schema.scene import SceneProposal
 from scenegen.tags.predicates import PREDICATE_VERSION
@@ -44,7 +44,7 @@ def request_for(config: PipelineConfig, index: int, categories: tuple[str, ...])
 
 def _proposals(config: PipelineConfig) -> Iterator[SceneProposal]:
     catalog = config.catalog()
-    proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
+    proposer = make_proposer(config, catalog)
     for index in range(config.proposal_cap):
         yield from proposer.propose(request_for(config, index, catalog.categories), [index], config.seed)
 

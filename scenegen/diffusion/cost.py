@@ -20,7 +20,17 @@ decoding are pushed apart by propose/separate.py).
   ``toppled`` (that its resting pose is upright), ``under_overhang`` (that no shelf is present, or
   that its centre is not under the shelf's board, or that it rests on the shelf), ``low_light``
   (ambient + unshadowed direct light on an upward surface at the target above 0.22, an upper bound of
-  the predicate's irradiance, which also counts shadows). ``occluded`` has no soft version.
+  the predicate's irradiance, which also counts shadows), ``occluded`` (a line-of-sight proxy, below);
+- ``arm_clearance`` (when the arm's geoms are given): overlap of an object's disc, where it stands as
+  high as a geom's lowest point, with the geom's disc widened by the check's 3 cm clearance: the
+  robot_clearance check's own geometry (check/geometry.py ``robot_geometry``), flattened to discs.
+
+Soft occluded: the main camera sees the target's centre along one ray. Another object blocks part of
+it where its centre lies between the two in the table plane, its top rises above the ray there and
+its disc covers part of the target's width across the ray (the overlap of the two discs' intervals
+across the line of sight, over the target's diameter); the shelf's board blocks it where the ray
+crosses the board's plane inside the board. Hidden = 1 - prod(1 - blocked); the term asks for at
+least 0.7 hidden (the predicate: half of the visible side's sample points).
 
 Presence is each slot's own sign; decoding also caps the objects at the scene token's count, which
 the terms ignore (a slot beyond the count still pushes and counts as a neighbour).
@@ -59,6 +69,18 @@ SHARPNESS = 8.0  # presence logits are +-1; sigmoid(8 x) is ~0 or ~1 away from 0
 REACH, REACH_MARGIN = (0.25, 0.95), 0.03  # m: CheckSettings.reach_min / reach_max, and a margin
 LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
 SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
+OCCLUDED_AIM = 0.7  # soft occluded asks for this share hidden (the predicate: 0.5 of sample points)
+ARM_CLEARANCE = 0.03  # m: CheckSettings.robot_clearance
+
+
+def pose_top(asset, pose: int) -> float:
+    """Height (m) of the asset's top above its origin when it rests in pose ``pose``."""
+    from scenegen.core.rotations import quat_to_matrix
+
+    half = np.asarray(asset.extents) / 2
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
+    z = (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, 2]
+    return float(z.max() - z.min() - asset.resting_poses[pose].height)
 
 
 def disc_radius(asset, pose: int) -> float:
@@ -75,7 +97,12 @@ class SceneCost:
         required: tuple[str, ...] = (),
         weights: dict[str, float] | None = None,
         shoulder: tuple[float, float, float] | None = None,
+        camera: tuple[float, float, float] | None = None,
+        arm: np.ndarray | None = None,
     ):
+        """``camera``: the main camera's position (m), for soft ``occluded``; ``arm`` (G, 4): the
+        arm's collision geoms at the request's pose as discs (x, y, lowest z, radius; m), for
+        ``arm_clearance``."""
         self.encoding = encoding
         # per asset a and pose column c: the disc radius, whether the pose is upright, and whether
         # the asset lacks a pose in that column (decoding never picks it)
@@ -87,7 +114,14 @@ class SceneCost:
                 radii[a, c] = disc_radius(asset, p)
                 upright[a, c] = float(asset.resting_poses[p].upright)
                 lacks[a, c] = False
-        self.radii, self.upright, self.lacks = radii, upright, lacks
+        tops = torch.zeros(shape)  # top above the object's origin (m) in each pose
+        for a, name in enumerate(encoding.assets):
+            asset = encoding.catalog.get(name)
+            for c, p in enumerate(encoding.pose_order[name]):
+                tops[a, c] = pose_top(asset, p)
+        self.radii, self.upright, self.lacks, self.tops = radii, upright, lacks, tops
+        self.camera = None if camera is None else torch.tensor(camera, dtype=torch.float32)
+        self.arm = None if arm is None else torch.tensor(np.asarray(arm), dtype=torch.float32)
         self.required = tuple(required)
         self.shoulder = None if shoulder is None else torch.tensor(shoulder, dtype=torch.float32)
         self.weights = {
@@ -156,7 +190,60 @@ class SceneCost:
             terms["under_overhang"] = self._under_overhang(scene, xy, radius, support_p, target_p) * 0.1
         if "low_light" in self.required:
             terms["low_light"] = torch.relu(self._light_bound(scene, xy, z, target_p) - LOW_LIGHT_BOUND)
+        if "occluded" in self.required and self.camera is not None:
+            top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
+            hidden = self._hidden(scene, present, xy, z, radius, top)  # (B, K): as if slot k were the target
+            terms["occluded"] = (target_p * torch.relu(OCCLUDED_AIM - hidden)).sum(1)
+        if self.arm is not None:
+            top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
+            terms["arm_clearance"] = self._arm_overlap(present, xy, z, radius, top)
         return terms
+
+    def _hidden(self, scene, present, xy, z, radius, top) -> torch.Tensor:
+        """Soft share (B, K) of slot k's width hidden from the main camera by the other slots' objects
+        and the shelf's board (module docstring)."""
+        k = self.encoding.slots
+        cam_xy, cam_z = self.camera[:2], self.camera[2] - layout.TABLE_TOP_Z  # heights above the table
+        xy_t, z_t = xy, z
+        sight = cam_xy - xy_t  # (B, K, 2) from each candidate target to the camera
+        reach = (sight.pow(2).sum(-1) + 1e-9).sqrt()
+        d = sight / reach[..., None]
+        rel = xy[:, None] - xy_t[:, :, None]  # (B, K target, K other, 2)
+        along = (rel * d[:, :, None]).sum(-1)
+        across = (rel[..., 0] * d[:, :, None, 1] - rel[..., 1] * d[:, :, None, 0]).abs()
+        between = torch.sigmoid(along / 0.01) * torch.sigmoid((reach[:, :, None] - along) / 0.01)
+        # only an occluder on the table counts: otherwise the gradient finds the line of sight beyond
+        # the table's front edge, towards the camera (out_of_workspace)
+        front = layout.TABLE_SIZE[0] / 2 - radius - xy[..., 0]
+        between = between * torch.sigmoid(front / 0.01)[:, None]
+        ray = z_t[:, :, None] + (cam_z - z_t[:, :, None]) * along / reach[:, :, None]
+        tall = torch.sigmoid((z[:, None] + top[:, None] - ray) / 0.01)
+        r_t, r_o = radius[:, :, None], radius[:, None]
+        cover = torch.relu(torch.minimum(across + r_o, r_t) - torch.maximum(across - r_o, -r_t)) / (2 * r_t)
+        blocked = present[:, None] * between * tall * cover.clamp(max=1.0) * (1 - torch.eye(k))
+        visible = (1 - blocked).prod(-1)
+        i = FURNITURE_KINDS.index("shelf")
+        shelf = layout.FURNITURE["shelf"]
+        board = shelf.surface_height - 0.02  # the board's underside above the table
+        centre = torch.tensor(FURNITURE_HOME["shelf"]) + scene[:, 3 * i + 1 : 3 * i + 3] * FURNITURE_SCALE
+        level = ((board - z_t) / (cam_z - z_t).clamp(min=1e-3)).clamp(0.0, 1.0)  # where the ray meets it
+        crossing = xy_t + level[..., None] * sight - centre[:, None]
+        inside = torch.sigmoid((torch.tensor(shelf.surface_half) - crossing.abs()) / 0.01).prod(-1)
+        under = torch.sigmoid((board - z_t) / 0.01) * torch.sigmoid(SHARPNESS * scene[:, 3 * i])[:, None]
+        # A target off the table is not hidden: otherwise the gradient found it a long line of sight
+        # off the table (x = -1.1 m or 1.45 m: out_of_workspace, measured) instead of occluders.
+        half = torch.tensor(layout.TABLE_SIZE[:2]) / 2
+        on_table = torch.sigmoid((half - xy.abs() - radius[..., None]) / 0.05).prod(-1)
+        return on_table * (1 - visible * (1 - under * inside))
+
+    def _arm_overlap(self, present, xy, z, radius, top) -> torch.Tensor:
+        """Sum over objects and arm geoms of how far (m) an object's disc reaches into a geom's disc
+        widened by the clearance, where the object rises above the geom's lowest point."""
+        gx, gy, low, r = self.arm.T
+        dist = ((xy[..., None, :] - torch.stack([gx, gy], -1)).pow(2).sum(-1) + 1e-9).sqrt()  # (B, K, G)
+        rises = torch.sigmoid((z[..., None] + top[..., None] + layout.TABLE_TOP_Z - low) / 0.01)
+        overlap = torch.relu(radius[..., None] + r + ARM_CLEARANCE - dist)
+        return (present[..., None] * rises * overlap).sum((1, 2))
 
     def _under_overhang(self, scene, xy, radius, support_p, target_p) -> torch.Tensor:
         """1 - P(shelf present) x P(target centre under its board, a disc radius inside its legs)

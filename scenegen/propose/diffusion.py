@@ -110,11 +110,16 @@ def load_generator(settings: DiffusionSettings):
 class DiffusionProposer:
     """Samples whole scenes from the denoiser for a condition."""
 
-    def __init__(self, settings: DiffusionSettings, catalog: Catalog):
+    wants_arm = True  # the runner passes ``arm``: check/geometry.py's arm_discs (no MuJoCo here)
+
+    def __init__(self, settings: DiffusionSettings, catalog: Catalog, arm=None):
+        """``arm(robot_pose) -> (G, 4)``: the arm's geoms as discs (check.geometry.arm_discs), for the
+        cost's arm clearance; None leaves that term out."""
         from scenegen.diffusion.encoding import SceneEncoding
 
         self.settings = settings
         self.catalog = catalog
+        self.arm = arm
         self.model, self.config = load_generator(settings)
         trained = list(self.config["encoding"].get("assets") or [])
         missing = [name for name in trained if name not in catalog.by_name]
@@ -133,12 +138,14 @@ class DiffusionProposer:
         self._group: list = []
 
     @functools.lru_cache(maxsize=16)  # noqa: B019 - one cost per request, for the proposer's lifetime
-    def _cost(self, required: tuple[str, ...]):
+    def _cost(self, required: tuple[str, ...], robot_pose: tuple[float, ...]):
         from scenegen.core.layout import SHOULDER
         from scenegen.diffusion.cost import SceneCost
 
         weights = dict.fromkeys(required, self.settings.request_cost)
-        return SceneCost(self.encoding, required, weights, shoulder=SHOULDER)
+        camera = self.settings.cameras[0].position  # the main camera: `occluded` is seen from it
+        arm = None if self.arm is None else self.arm(robot_pose)
+        return SceneCost(self.encoding, required, weights, shoulder=SHOULDER, camera=camera, arm=arm)
 
     def describe(self) -> dict:
         return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
@@ -231,7 +238,8 @@ class DiffusionProposer:
             regenerate_scene=torch.tensor(regenerate_scene)[None],
             noise=torch.randn(s.steps + 1, 1, width, generator=generator),
         )
-        cost = self._cost(tuple(parent.condition.required())) if s.cost_weight > 0 else None
+        required, pose = tuple(parent.condition.required()), tuple(parent.condition.robot_pose)
+        cost = self._cost(required, pose) if s.cost_weight > 0 else None
         objects, scene_out = sample(
             self.model,
             self.config["train"],
@@ -276,7 +284,7 @@ class DiffusionProposer:
             noise_o.append(torch.randn(1, cfg.slots, cfg.object_width, generator=generator))
             noise_s.append(torch.randn(1, cfg.scene_width, generator=generator))
         required = tuple(condition.required())
-        cost = self._cost(required) if s.cost_weight > 0 else None
+        cost = self._cost(required, tuple(condition.robot_pose)) if s.cost_weight > 0 else None
         objects, scene = sample(
             self.model,
             self.config["train"],

@@ -36,6 +36,17 @@ def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterat
         )
 
 
+def make_proposer(config: PipelineConfig, catalog) -> Proposer:
+    """The recipe's proposer, given what a proposer may not compute itself (it imports no MuJoCo):
+    the arm's geoms at a robot pose (check.geometry.arm_discs) for a proposer that ``wants_arm``."""
+    cls = PROPOSERS[config.proposer.kind]
+    if getattr(cls, "wants_arm", False):
+        from scenegen.check.geometry import arm_discs
+
+        return cls(config.proposer, catalog, arm=arm_discs)
+    return cls(config.proposer, catalog)
+
+
 def _outcomes(proposals, proposer, config: PipelineConfig, workers: int, backend: Backend, seconds):
     """Per proposal index, in index order, the outcomes of its tries: one, or with the proposer's
     ``repairs`` the first pass and its repairs (runner/repairing.py), the repairs' making timed into
@@ -86,7 +97,7 @@ def run_batch(
     from tqdm import tqdm
 
     catalog = config.catalog()
-    proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
+    proposer = make_proposer(config, catalog)
     store = BatchStore(out)
     state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     seconds = dict.fromkeys(STAGES, 0.0)  # all proposals, summed over workers

@@ -181,3 +181,37 @@ def test_penetration_uses_the_disc_of_the_sampled_resting_pose(encoding, tokens)
 
     assert penetration(0.005) < 1e-4
     assert penetration(-0.02) == pytest.approx(0.02, abs=2e-3)
+
+
+def test_soft_occluded_separates_the_reference_layouts_where_the_target_is_hidden(encoding):
+    from scenegen.propose.procedural import DEFAULT_CAMERAS
+
+    rows = load_rows(REFERENCE, None)[:2000]  # occluded: 4 % of layouts
+    encoded = [encoding.encode_row(r) for r in rows]
+    objects = torch.tensor(np.stack([o for o, _ in encoded]), dtype=torch.float32)
+    scene = torch.tensor(np.stack([s for _, s in encoded]), dtype=torch.float32)
+    holds = torch.tensor([bool(r["tag_occluded"]) for r in rows])
+    cost = SceneCost(encoding, required=("occluded",), camera=DEFAULT_CAMERAS[0].position)
+    term = cost.terms(objects, scene)["occluded"]
+    assert holds.sum() >= 10 and (term >= 0).all()
+    assert term[holds].mean() < 0.4 * term[~holds].mean()
+    assert (term[~holds] > 0.05).float().mean() > 0.95  # a visible target is (nearly) always charged
+
+
+def test_arm_clearance_is_zero_on_the_reference_and_charges_an_object_under_the_gripper(encoding, tokens):
+    from scenegen.check.geometry import arm_discs
+    from scenegen.schema.condition import Condition
+
+    rows, objects, scene = tokens
+    pose = Condition(task="retrieve", target="mug", robot_pose="home").robot_pose
+    cost = SceneCost(encoding, arm=arm_discs(tuple(pose)))
+    term = cost.terms(objects, scene)["arm_clearance"]
+    assert (term < 1e-3).float().mean() > 0.9  # layouts that passed the robot_clearance check
+    i = next(k for k, r in enumerate(rows) if r["objects"][0]["asset"] == "cereal_box")
+    under = objects[i : i + 1].clone()
+    gripper = arm_discs(tuple(pose))[-3]  # the hand, 0.2 m above the table
+    under[0, 0, encoding.xyz_cols.start : encoding.xyz_cols.start + 2] = torch.tensor(gripper[:2] / XY_SCALE)
+    assert cost.terms(under, scene[i : i + 1])["arm_clearance"] > 0.01
+    front = under.clone()
+    front[0, 0, encoding.xyz_cols.start] = 0.3 / XY_SCALE  # the table's front, far from the arm
+    assert cost.terms(front, scene[i : i + 1])["arm_clearance"] < 1e-3
