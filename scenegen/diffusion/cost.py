@@ -29,8 +29,13 @@ Soft occluded: the main camera sees the target's centre along one ray. Another o
 it where its centre lies between the two in the table plane, its top rises above the ray there and
 its disc covers part of the target's width across the ray (the overlap of the two discs' intervals
 across the line of sight, over the target's diameter); the shelf's board blocks it where the ray
-crosses the board's plane inside the board. Hidden = 1 - prod(1 - blocked); the term asks for at
-least 0.7 hidden (the predicate: half of the visible side's sample points).
+crosses the board's plane inside the board. Hidden = 1 - prod(1 - blocked), and 0 for a target off
+the table; the term, 0.3 x (0.7 - hidden) where positive, asks for at least 0.7 hidden (the
+predicate: half of the visible side's sample points). Its edges are soft (5 cm along the line of
+sight, 2 cm across it and in height) so that the gradient reaches objects not yet near the line; on
+the reference layouts it is 0 for 39 % of those where the target is occluded and for 0.1 % of the
+others (2,000 layouts). "retrieve the spoon occluded", 64 proposals: 9 accepted without the term,
+14 with hard 1 cm edges, 20 with the soft ones.
 
 Presence is each slot's own sign; decoding also caps the objects at the scene token's count, which
 the terms ignore (a slot beyond the count still pushes and counts as a neighbour).
@@ -70,6 +75,11 @@ REACH, REACH_MARGIN = (0.25, 0.95), 0.03  # m: CheckSettings.reach_min / reach_m
 LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
 SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
 OCCLUDED_AIM = 0.7  # soft occluded asks for this share hidden (the predicate: 0.5 of sample points)
+# The occluded term's weight within the request's: at 1 its gradient threw objects off the table
+# (out_of_workspace 16 of 64 proposals of "retrieve the mug toppled occluded low_light"); accepted
+# 5 / 11 / 14 / 13 / 10 of 64 at 0 / 0.1 / 0.3 / 0.5 / 1 (hard 1 cm edges; measured here)
+OCCLUDED_SCALE = 0.3
+SIGHT_SOFT = 0.05  # m: the soft edge of "between the target and the camera"
 ARM_CLEARANCE = 0.03  # m: CheckSettings.robot_clearance
 
 
@@ -193,7 +203,7 @@ class SceneCost:
         if "occluded" in self.required and self.camera is not None:
             top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
             hidden = self._hidden(scene, present, xy, z, radius, top)  # (B, K): as if slot k were the target
-            terms["occluded"] = (target_p * torch.relu(OCCLUDED_AIM - hidden)).sum(1)
+            terms["occluded"] = (target_p * torch.relu(OCCLUDED_AIM - hidden)).sum(1) * OCCLUDED_SCALE
         if self.arm is not None:
             top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
             terms["arm_clearance"] = self._arm_overlap(present, xy, z, radius, top)
@@ -211,15 +221,18 @@ class SceneCost:
         rel = xy[:, None] - xy_t[:, :, None]  # (B, K target, K other, 2)
         along = (rel * d[:, :, None]).sum(-1)
         across = (rel[..., 0] * d[:, :, None, 1] - rel[..., 1] * d[:, :, None, 0]).abs()
-        between = torch.sigmoid(along / 0.01) * torch.sigmoid((reach[:, :, None] - along) / 0.01)
+        # Wide soft edges (5 cm, 2 cm): the gradient must reach an object that is not yet near the line
+        # of sight (with 1 cm edges, guided samples ended with nothing near it, the term at its top)
+        between = torch.sigmoid(along / SIGHT_SOFT) * torch.sigmoid((reach[:, :, None] - along) / SIGHT_SOFT)
         # only an occluder on the table counts: otherwise the gradient finds the line of sight beyond
         # the table's front edge, towards the camera (out_of_workspace)
         front = layout.TABLE_SIZE[0] / 2 - radius - xy[..., 0]
         between = between * torch.sigmoid(front / 0.01)[:, None]
         ray = z_t[:, :, None] + (cam_z - z_t[:, :, None]) * along / reach[:, :, None]
-        tall = torch.sigmoid((z[:, None] + top[:, None] - ray) / 0.01)
+        tall = torch.sigmoid((z[:, None] + top[:, None] - ray) / 0.02)
         r_t, r_o = radius[:, :, None], radius[:, None]
-        cover = torch.relu(torch.minimum(across + r_o, r_t) - torch.maximum(across - r_o, -r_t)) / (2 * r_t)
+        overlap = torch.minimum(across + r_o, r_t) - torch.maximum(across - r_o, -r_t)
+        cover = torch.nn.functional.softplus(overlap / 0.02) * 0.02 / (2 * r_t)
         blocked = present[:, None] * between * tall * cover.clamp(max=1.0) * (1 - torch.eye(k))
         visible = (1 - blocked).prod(-1)
         i = FURNITURE_KINDS.index("shelf")
