@@ -83,6 +83,7 @@ class Inpaint:
     regenerate_objects: torch.Tensor
     regenerate_scene: torch.Tensor
     noise: torch.Tensor
+    strength: float = 1.0  # start from the known scene noised this far into the schedule (1: pure noise)
 
     def flat(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The known clean scene and the regenerate mask, flattened to (B, D) as :func:`sample`'s x."""
@@ -118,7 +119,14 @@ def sample(
     known, regenerate = inpaint.flat() if inpaint is not None else (None, None)
     timesteps = [int(t) for t in scheduler.timesteps]
     if known is not None:
-        x = torch.where(regenerate, x, _noised(known, alphas[timesteps[0]], inpaint.noise[0]))
+        # SDEdit-style start (Meng et al. 2022): the regenerated part begins as the known scene noised
+        # to the first kept step, so a re-sampled object keeps being an object (from pure noise, a
+        # freed slot often collapsed into an empty one: x = y = -0.5 m, measured)
+        skip = len(timesteps) - max(1, round(inpaint.strength * len(timesteps)))
+        timesteps = timesteps[skip:]
+        noise = inpaint.noise[skip:]
+        start = _noised(known, alphas[timesteps[0]], noise[0])
+        x = start if inpaint.strength < 1.0 else torch.where(regenerate, x, start)
     for i, t in enumerate(timesteps):
         objects, scene = x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]
         tt = torch.full((b,), t, dtype=torch.long)
@@ -136,7 +144,7 @@ def sample(
         x = scheduler.step(eps, t, x, eta=0.0).prev_sample
         if known is not None:
             last = i + 1 == len(timesteps)
-            held = known if last else _noised(known, alphas[timesteps[i + 1]], inpaint.noise[i + 1])
+            held = known if last else _noised(known, alphas[timesteps[i + 1]], noise[i + 1])
             x = torch.where(regenerate, x, held)
     return x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]
 

@@ -8,7 +8,7 @@ chunked, resumed or spread over workers.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 from pydantic import BaseModel, field_validator, model_serializer
@@ -67,15 +67,19 @@ def proposal_rng(seed: int, index: int) -> np.random.Generator:
 class AssetChoice(BaseModel):
     """``assets``: the only assets a proposer places (a user catalog's, say); None, the default, puts
     no limit and is left out of the settings' dump, so recipes without the key hash as before it
-    existed. Shared by the procedural and diffusion settings."""
+    existed (``OMITTED_AT``: such keys and their defaults). Shared by the procedural and diffusion
+    settings."""
 
     assets: tuple[str, ...] | None = None
+    # keys left out of the dump at these values: settings added later hash as before they existed
+    OMITTED_AT: ClassVar[dict[str, object]] = {"assets": None}
 
     @model_serializer(mode="wrap")
-    def _omit_unset_assets(self, handler):
+    def _omit_unset(self, handler):
         data = handler(self)
-        if data.get("assets", 0) is None:
-            del data["assets"]
+        for key, value in self.OMITTED_AT.items():
+            if key in data and data[key] == value:
+                del data[key]
         return data
 
     @field_validator("assets")

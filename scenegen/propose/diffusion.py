@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import ConfigDict, Field, field_validator
@@ -46,6 +46,13 @@ class DiffusionSettings(AssetChoice):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    OMITTED_AT: ClassVar[dict[str, object]] = {
+        "assets": None,
+        "repairs": 0,
+        "repair_width": 1,
+        "repair_strength": 0.75,
+    }
+
     kind: Literal["diffusion"] = "diffusion"
     checkpoint: str = "assets/generator"  # checkpoint directory (relative paths: to the project root)
     guidance: float = Field(1.0, ge=0.0, le=20.0)  # w in eps~ = (1 + w) eps(c) - w eps(null)
@@ -55,6 +62,7 @@ class DiffusionSettings(AssetChoice):
     unconditional: bool = False  # sample the null condition (the model's own distribution)
     repairs: int = Field(0, ge=0, le=64)  # re-samplings of a failed proposal's culprits (propose/repair.py)
     repair_width: int = Field(1, ge=1, le=8)  # repairs per expansion: 1 a chain, more a best-first search
+    repair_strength: float = Field(0.75, gt=0.0, le=1.0)  # a repair starts this far into the schedule
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
@@ -237,6 +245,7 @@ class DiffusionProposer:
             regenerate_objects=torch.tensor(regenerate_objects)[None],
             regenerate_scene=torch.tensor(regenerate_scene)[None],
             noise=torch.randn(s.steps + 1, 1, width, generator=generator),
+            strength=s.repair_strength,
         )
         required, pose = tuple(parent.condition.required()), tuple(parent.condition.robot_pose)
         cost = self._cost(required, pose) if s.cost_weight > 0 else None
