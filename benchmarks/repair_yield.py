@@ -1,16 +1,18 @@
 """Multi-tag requests with repairs: accepted scenes, tries (first-pass proposals + repairs) per
-accepted scene and the proposer's own CPU, for the code at a baseline commit (no repairs) and this
-checkout (``--repairs``), in the same invocation.
+accepted scene and the proposer's own CPU, for the code at a baseline commit and this checkout
+without and with repairs (``--repairs``), in the same invocation.
 
     .venv/bin/python benchmarks/repair_yield.py [--n 20] [--baseline-n 10] [--baseline bf81ff9]
-        [--repairs 4] [--width 1] [--requests "retrieve the mug toppled occluded low_light" ...]
+        [--repairs 4] [--width 1] [--max-proposals 200]
+        [--requests "retrieve the mug toppled occluded low_light" ...]
 
 Each run is `scenegen generate pipelines/demo.yaml --request R --no-render --workers 1` in a fresh
 process (one process, so the coordinator's ``propose`` seconds in timings.json are the proposer's
 own time on one core, sampling + decoding + separating + repairing); the baseline runs from that
 commit's code (`git archive`) with its own recipe and checkpoint, this checkout with the recipe's
-``proposer.repairs`` / ``repair_width`` set. CPU-s: the child process's user + system time. Prints a
-table and writes benchmarks/results/repair_yield.json.
+``proposer.repairs`` / ``repair_width`` set, then at 0. A run stops at ``--max-proposals`` first-pass
+proposals if it has not its n scenes by then (a rare request). CPU-s: the child process's user +
+system time. Prints a table and writes benchmarks/results/repair_yield.json.
 """
 
 from __future__ import annotations
@@ -36,11 +38,12 @@ REQUESTS = (
 )
 
 
-def generate(code: Path, recipe: Path, request: str, n: int, out: Path) -> dict:
+def generate(code: Path, recipe: Path, request: str, n: int, out: Path, cap: int) -> dict:
     """One batch in a child process; its counts, the proposer's seconds and the child's CPU-s."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     cmd = [sys.executable, "-m", "scenegen.cli", "generate", str(recipe), "--request", request]
-    cmd += ["--n", str(n), "--no-render", "--workers", "1", "--quiet", "--out", str(out)]
+    cmd += ["--n", str(n), "--max-proposals", str(cap), "--no-render", "--workers", "1", "--quiet"]
+    cmd += ["--out", str(out)]
     env = {**os.environ, "PYTHONPATH": str(code), "OPENBLAS_NUM_THREADS": "1"}
     done = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -56,13 +59,17 @@ def generate(code: Path, recipe: Path, request: str, n: int, out: Path) -> dict:
         "accepted": accepted,
         "first_pass": first,
         "tries": tries,
-        "tries_per_accepted": tries / max(accepted, 1),
+        "tries_per_accepted": tries / accepted if accepted else None,
         "propose_s": propose,
         "propose_s_per_first_pass": propose / max(first, 1),
-        "propose_s_per_accepted": propose / max(accepted, 1),
+        "propose_s_per_accepted": propose / accepted if accepted else None,
         "cpu_s": cpu,
-        "cpu_s_per_accepted": cpu / max(accepted, 1),
+        "cpu_s_per_accepted": cpu / accepted if accepted else None,
     }
+
+
+def _fmt(value: float | None, digits: int) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -72,38 +79,43 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--baseline", default="bf81ff9", help="commit without repairs (default bf81ff9)")
     parser.add_argument("--repairs", type=int, default=4, help="repairs per proposal (default 4)")
     parser.add_argument("--width", type=int, default=1, help="repairs per expansion (default 1: a chain)")
+    parser.add_argument("--max-proposals", type=int, default=200, help="first-pass proposals per run at most")
     parser.add_argument("--requests", nargs="+", default=list(REQUESTS), help="request texts")
     args = parser.parse_args(argv)
     raw = yaml.safe_load((ROOT / "pipelines" / "demo.yaml").read_text())
     raw["proposer"].update(repairs=args.repairs, repair_width=args.width)
-    results: dict = {"baseline": {}, "current": {}}
+    sides = ("baseline", "no_repairs", "repairs")
+    results: dict = {side: {} for side in sides}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         recipe = tmp / "repairs.yaml"
         recipe.write_text(yaml.safe_dump(raw, sort_keys=False))
         code = extract(args.baseline, tmp)
         for k, request in enumerate(args.requests):
-            base = generate(code, code / "pipelines" / "demo.yaml", request, args.baseline_n, tmp / f"b{k}")
-            results["baseline"][request] = base
-            results["current"][request] = generate(ROOT, recipe, request, args.n, tmp / f"c{k}")
-            print(request, json.dumps({s: results[s][request] for s in results}), flush=True)
-    print(f"\nrepairs {args.repairs}, width {args.width}; baseline {args.baseline} without repairs")
+            cap = args.max_proposals
+            base_recipe = code / "pipelines" / "demo.yaml"
+            runs = {
+                "baseline": (code, base_recipe, args.baseline_n),
+                "no_repairs": (ROOT, ROOT / "pipelines" / "demo.yaml", args.n),
+                "repairs": (ROOT, recipe, args.n),
+            }
+            for side, (where, what, n) in runs.items():
+                results[side][request] = generate(where, what, request, n, tmp / f"{side}{k}", cap)
+            print(request, json.dumps({s: results[s][request] for s in sides}), flush=True)
+    print(f"\nrepairs {args.repairs}, width {args.width}; baseline {args.baseline}; one process each")
     print(
-        "| request | baseline accepted / tries | tries per accepted | with repairs accepted / tries "
-        "| tries per accepted | proposer ms per first-pass proposal: baseline | with repairs "
-        "| proposer CPU-s per accepted: baseline | with repairs "
-        "| CPU-s per accepted: baseline | with repairs |"
+        "| request | run | accepted / tries (first pass) | tries per accepted | proposer ms per first-pass "
+        "proposal | proposer CPU-s per accepted | CPU-s per accepted |"
     )
-    print("|---" * 11 + "|")
+    print("|---" * 7 + "|")
     for request in args.requests:
-        b, c = results["baseline"][request], results["current"][request]
-        print(
-            f"| {request} | {b['accepted']} / {b['tries']} | {b['tries_per_accepted']:.1f} | "
-            f"{c['accepted']} / {c['tries']} | {c['tries_per_accepted']:.1f} | "
-            f"{1e3 * b['propose_s_per_first_pass']:.0f} | {1e3 * c['propose_s_per_first_pass']:.0f} | "
-            f"{b['propose_s_per_accepted']:.2f} | {c['propose_s_per_accepted']:.2f} | "
-            f"{b['cpu_s_per_accepted']:.1f} | {c['cpu_s_per_accepted']:.1f} |"
-        )
+        for side in sides:
+            r = results[side][request]
+            per = [_fmt(r[k], f) for k, f in (("tries_per_accepted", 1), ("propose_s_per_accepted", 2))]
+            print(
+                f"| {request} | {side} | {r['accepted']} / {r['tries']} ({r['first_pass']}) | {per[0]} | "
+                f"{1e3 * r['propose_s_per_first_pass']:.0f} | {per[1]} | {_fmt(r['cpu_s_per_accepted'], 1)} |"
+            )
     out = ROOT / "benchmarks" / "results" / "repair_yield.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"args": vars(args), **results}, indent=1) + "\n")

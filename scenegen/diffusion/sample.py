@@ -7,7 +7,7 @@ Per step, with a_t the cumulative alpha of timestep t:
     x0_hat = (x_t - sqrt(1 - a_t) eps~) / sqrt(a_t)
     x0_hat -= cost_weight * grad_x0 cost(x0_hat)                   (only when cost_weight > 0)
     eps~   = (x_t - sqrt(a_t) x0_hat) / sqrt(1 - a_t)
-    x_{t-1} = DDIM step (eta 0, clip_sample off, trailing spacing)
+    x_{t-1} = DDIM step (eta 0, clip_sample off, trailing spacing), or DPM-Solver++ (``solver``)
 
 The cost step is taken on the clean-scene estimate, in token units, and eps~ is re-derived from it.
 Adding a gradient to eps~ instead would be divided by sqrt(a_t) (~1e-4 at the first steps) in the
@@ -50,6 +50,33 @@ def load_denoiser(checkpoint: Path) -> tuple[Denoiser, dict]:
     except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
         raise checkpoint_error(weights, exc, remedy) from None
     return model.eval().requires_grad_(False), config
+
+
+SOLVERS = ("ddim", "dpm")
+
+
+def scheduler_for(train_config: dict, steps: int, solver: str = "ddim"):
+    """A fresh scheduler of ``solver`` for ``steps`` sampling steps: ``ddim`` (:func:`ddim_scheduler`)
+    or ``dpm``, DPM-Solver++ of order 2 (Lu et al. 2022; diffusers' DPMSolverMultistepScheduler,
+    deterministic, trailing spacing, first order at the last step). Both take eps and keep state:
+    one per sampling call."""
+    if solver == "ddim":
+        return ddim_scheduler(train_config, steps)
+    if solver != "dpm":
+        raise ValueError(f"solver {solver!r}: choose one of {', '.join(SOLVERS)}")
+    from diffusers import DPMSolverMultistepScheduler
+
+    scheduler = DPMSolverMultistepScheduler(
+        num_train_timesteps=train_config["train_timesteps"],
+        beta_schedule=train_config["beta_schedule"],
+        algorithm_type="dpmsolver++",
+        solver_order=2,
+        timestep_spacing="trailing",
+        prediction_type="epsilon",
+        lower_order_final=True,
+    )
+    scheduler.set_timesteps(steps)
+    return scheduler
 
 
 def ddim_scheduler(train_config: dict, steps: int):
@@ -104,6 +131,7 @@ def sample(
     cost: Cost | None = None,
     cost_weight: float = 0.0,
     inpaint: Inpaint | None = None,
+    solver: str = "ddim",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Denoise the initial noise (B, slots, object_width), (B, scene_width) under ``condition``.
 
@@ -111,7 +139,7 @@ def sample(
     ``inpaint``, after every step the held part of x is replaced by the known scene noised to the
     next step's level, the cost gradient moves only the regenerated part, and the result holds the
     known values exactly where they are held."""
-    scheduler = ddim_scheduler(train_config, steps)
+    scheduler = scheduler_for(train_config, steps, solver)
     alphas = scheduler.alphas_cumprod
     cfg = model.config
     b, n_obj = len(noise_objects), cfg.slots * cfg.object_width
@@ -141,7 +169,7 @@ def sample(
             if regenerate is not None:
                 grad = grad * regenerate
             eps = (x - a.sqrt() * (x0.detach() - cost_weight * grad)) / (1 - a).sqrt()
-        x = scheduler.step(eps, t, x, eta=0.0).prev_sample
+        x = scheduler.step(eps, t, x, **({"eta": 0.0} if solver == "ddim" else {})).prev_sample
         if known is not None:
             last = i + 1 == len(timesteps)
             held = known if last else _noised(known, alphas[timesteps[i + 1]], noise[i + 1])
