@@ -8,11 +8,12 @@ without and with repairs (``--repairs``), in the same invocation.
 
 Each run is `scenegen generate pipelines/demo.yaml --request R --no-render --workers 1` in a fresh
 process (one process, so the coordinator's ``propose`` seconds in timings.json are the proposer's
-own time on one core, sampling + decoding + separating + repairing); the baseline runs from that
-commit's code (`git archive`) with its own recipe and checkpoint, this checkout with the recipe's
-``proposer.repairs`` / ``repair_width`` set, then at 0. A run stops at ``--max-proposals`` first-pass
-proposals if it has not its n scenes by then (a rare request). CPU-s: the child process's user +
-system time. Prints a table and writes benchmarks/results/repair_yield.json.
+own time on one core, sampling + decoding + separating + repairing, and the checkpoint's loading,
+~1.7 s, at the first); the baseline runs from that commit's code (`git archive`) with its own recipe
+and checkpoint, this checkout with the demo recipe plus the v2 cost terms (``soft_occluded``,
+``arm_clearance``), without repairs and with ``proposer.repairs`` / ``repair_width``. A run stops
+at ``--max-proposals`` first-pass proposals if it has not its n scenes by then (a rare request).
+CPU-s: the child process's user + system time. Prints a table and writes benchmarks/results/repair_yield.json.
 """
 
 from __future__ import annotations
@@ -83,20 +84,23 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--requests", nargs="+", default=list(REQUESTS), help="request texts")
     args = parser.parse_args(argv)
     raw = yaml.safe_load((ROOT / "pipelines" / "demo.yaml").read_text())
+    raw["proposer"].update(soft_occluded=True, arm_clearance=True)  # generator v2's cost terms
+    plain = dict(raw, proposer=dict(raw["proposer"]))
     raw["proposer"].update(repairs=args.repairs, repair_width=args.width)
     sides = ("baseline", "no_repairs", "repairs")
     results: dict = {side: {} for side in sides}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        recipe = tmp / "repairs.yaml"
+        recipe, no_repairs = tmp / "repairs.yaml", tmp / "no_repairs.yaml"
         recipe.write_text(yaml.safe_dump(raw, sort_keys=False))
+        no_repairs.write_text(yaml.safe_dump(plain, sort_keys=False))
         code = extract(args.baseline, tmp)
         for k, request in enumerate(args.requests):
             cap = args.max_proposals
             base_recipe = code / "pipelines" / "demo.yaml"
             runs = {
                 "baseline": (code, base_recipe, args.baseline_n),
-                "no_repairs": (ROOT, ROOT / "pipelines" / "demo.yaml", args.n),
+                "no_repairs": (ROOT, no_repairs, args.n),
                 "repairs": (ROOT, recipe, args.n),
             }
             for side, (where, what, n) in runs.items():

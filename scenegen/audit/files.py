@@ -190,6 +190,11 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
     )
     if unfinished:
         audit.violation(where, "count", f"proposal indices {unfinished[:5]} were repaired but never ended")
+    end_attempt = {r["proposal_index"]: r.get("attempt", 0) for r in ends}
+    late = sorted({i for (i, a) in tries if i in end_attempt and a > end_attempt[i]})
+    if late:
+        audit.violation(where, "count", f"proposal indices {late[:5]} have tries after their last one")
+    repaired = {(r["proposal_index"], r.get("attempt", 0)) for r in rejections if r.get("repaired")}
     ids = Counter(row.get("scene_id") for row in index)
     for scene_id in sorted(str(s) for s, n in ids.items() if n > 1):
         audit.violation(f"{where}: {scene_id}", "count", f"listed {ids[scene_id]} times in {INDEX}")
@@ -197,7 +202,7 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
         audit.violation(f"{where}: {extra}", "count", f"a scene directory {INDEX} does not list")
     listed: set[Path] = set()
     for row in index:
-        listed |= _scene(audit, where, source, batch, row)
+        listed |= _scene(audit, where, source, batch, row, repaired)
     _unlisted(audit, where, batch, dirs, listed)
     _unlisted_top_level(audit, where, batch)
     config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
@@ -209,8 +214,10 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
         _rederive(audit, where, source, batch, config)
 
 
-def _scene(audit, where: str, source: Source, batch: Path, row: dict) -> set[Path]:
-    """Check one scene of the index; returns the paths its scene.json lists (resolved)."""
+def _scene(audit, where: str, source: Source, batch: Path, row: dict, repaired=frozenset()) -> set[Path]:
+    """Check one scene of the index; returns the paths its scene.json lists (resolved). ``repaired``:
+    the (proposal index, attempt) of every rejection row a repair followed: each step of the
+    scene's repair path must have its failed parent there."""
     scene_id = row.get("scene_id")
     if not isinstance(scene_id, str) or not SCENE_ID.match(scene_id):
         audit.violation(f"{where}: {INDEX}", "count", f"an index row names scene {scene_id!r}")
@@ -233,6 +240,14 @@ def _scene(audit, where: str, source: Source, batch: Path, row: dict) -> set[Pat
     except (ValueError, KeyError, TypeError, AssertionError):
         audit.violation(f"{at}/scene.json", "checksum", "not a scene record with a files mapping")
         return set()
+    path = (record.get("provenance") or {}).get("repairs") or []
+    missing = [
+        step.get("parent") for step in path if (row.get("proposal_index"), step.get("parent")) not in repaired
+    ]
+    if missing:
+        audit.violation(
+            f"{at}/scene.json", "rejections", f"repair path names tries {missing[:3]} the rejection log lacks"
+        )
     if record.get("predicate_version") != source.predicate_version:
         audit.violation(
             f"{at}/scene.json",

@@ -115,6 +115,7 @@ def run_sweep(
     from tqdm import tqdm
 
     from scenegen.assets.catalog import load_catalog
+    from scenegen.check.geometry import arm_discs
     from scenegen.propose.diffusion import DiffusionProposer
     from scenegen.runner.executors import ordered_outcomes
 
@@ -132,7 +133,7 @@ def run_sweep(
                     "unconditional": cell.guidance is None,
                 }
             )
-            proposer = DiffusionProposer(settings, catalog)
+            proposer = DiffusionProposer(settings, catalog, arm=arm_discs)  # as make_proposer gives it
             if c == 0:
                 proposer.decoded(cell.requests[0], 0, config.seed)  # warm-up, not timed: lazy torch set-up
             for r, request in enumerate(cell.requests):

@@ -52,6 +52,8 @@ class DiffusionSettings(AssetChoice):
         "repair_width": 1,
         "repair_strength": 0.75,
         "solver": "ddim",
+        "soft_occluded": False,
+        "arm_clearance": False,
     }
 
     kind: Literal["diffusion"] = "diffusion"
@@ -61,6 +63,11 @@ class DiffusionSettings(AssetChoice):
     solver: Literal["ddim", "dpm"] = "ddim"  # DDIM, or DPM-Solver++ 2M (as good at half the steps)
     cost_weight: float = Field(0.1, ge=0.0)  # cost guidance step (scenegen/diffusion/cost.py); 0: off
     request_cost: float = Field(10.0, ge=0.0)  # weight of the soft required predicates within the cost
+    # Cost terms of generator v2 (issue 35), off by default so that recipes and the scenes made with
+    # them (the transfer experiment's D arm) stay as they were: the line-of-sight term for a required
+    # occluded, and the term keeping objects off the arm's geoms at the request's pose (cost.py)
+    soft_occluded: bool = False
+    arm_clearance: bool = False
     unconditional: bool = False  # sample the null condition (the model's own distribution)
     repairs: int = Field(0, ge=0, le=64)  # re-samplings of a failed proposal's culprits (propose/repair.py)
     repair_width: int = Field(1, ge=1, le=8)  # repairs per expansion: 1 a chain, more a best-first search
@@ -152,9 +159,10 @@ class DiffusionProposer:
         from scenegen.core.layout import SHOULDER
         from scenegen.diffusion.cost import SceneCost
 
-        weights = dict.fromkeys(required, self.settings.request_cost)
-        camera = self.settings.cameras[0].position  # the main camera: `occluded` is seen from it
-        arm = None if self.arm is None else self.arm(robot_pose)
+        s = self.settings
+        weights = dict.fromkeys(required, s.request_cost)
+        camera = s.cameras[0].position if s.soft_occluded else None  # `occluded` is seen from the main camera
+        arm = None if self.arm is None or not s.arm_clearance else self.arm(robot_pose)
         return SceneCost(self.encoding, required, weights, shoulder=SHOULDER, camera=camera, arm=arm)
 
     def describe(self) -> dict:

@@ -70,7 +70,10 @@ def repaired_outcomes(
     try:
         with one_blas_thread():
             while True:
-                while not exhausted and runner.in_flight < IN_FLIGHT_PER_WORKER * max(workers, 1):
+                ahead = IN_FLIGHT_PER_WORKER * max(workers, 1)
+                # bounded by tries out and by indices waiting behind an unfinished head (a long chain
+                # there must not let finished later indices, images and all, pile up in memory)
+                while not exhausted and runner.in_flight < ahead and len(order) < 2 * ahead:
                     proposal = next(proposals, None)
                     if proposal is None:
                         exhausted = True

@@ -289,12 +289,14 @@ def _unfinished_repairs_cut(path: Path, rejections: list[dict], index: list[dict
     """The rejection log without the rows of a proposal index whose repairs a kill interrupted (its
     last rows say ``repaired`` and nothing of the index follows): the index is redone on resume,
     first pass and repairs, as an uninterrupted run would have them. Rewrites the log if so."""
-    stored = {row["proposal_index"] for row in index}
-    keep = len(rejections)
-    while keep and rejections[keep - 1].get("repaired"):
-        keep -= 1
-    if keep < len(rejections) and rejections[-1]["proposal_index"] in stored:
+    if not rejections or not rejections[-1].get("repaired"):
+        return rejections
+    last = rejections[-1]["proposal_index"]
+    if last in {row["proposal_index"] for row in index}:
         return rejections  # the index ended accepted: its repairs are complete
+    keep = len(rejections)
+    while keep and rejections[keep - 1].get("repaired") and rejections[keep - 1]["proposal_index"] == last:
+        keep -= 1  # only the last index's rows: an earlier accepted index's repair rows stay
     if keep == len(rejections):
         return rejections
     kept = rejections[:keep]
