@@ -81,20 +81,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repairs", type=int, default=4, help="repairs per proposal (default 4)")
     parser.add_argument("--width", type=int, default=1, help="repairs per expansion (default 1: a chain)")
     parser.add_argument("--max-proposals", type=int, default=200, help="first-pass proposals per run at most")
+    parser.add_argument("--repair-labels", nargs="+", help="repair only these rejection labels (default all)")
+    parser.add_argument("--no-baseline", action="store_true", help="skip the baseline commit's runs")
     parser.add_argument("--requests", nargs="+", default=list(REQUESTS), help="request texts")
     args = parser.parse_args(argv)
     raw = yaml.safe_load((ROOT / "pipelines" / "demo.yaml").read_text())
     raw["proposer"].update(soft_occluded=True, arm_clearance=True)  # generator v2's cost terms
     plain = dict(raw, proposer=dict(raw["proposer"]))
     raw["proposer"].update(repairs=args.repairs, repair_width=args.width)
-    sides = ("baseline", "no_repairs", "repairs")
+    if args.repair_labels:
+        raw["proposer"]["repair_labels"] = list(args.repair_labels)
+    sides = ("no_repairs", "repairs") if args.no_baseline else ("baseline", "no_repairs", "repairs")
     results: dict = {side: {} for side in sides}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         recipe, no_repairs = tmp / "repairs.yaml", tmp / "no_repairs.yaml"
         recipe.write_text(yaml.safe_dump(raw, sort_keys=False))
         no_repairs.write_text(yaml.safe_dump(plain, sort_keys=False))
-        code = extract(args.baseline, tmp)
+        code = tmp if args.no_baseline else extract(args.baseline, tmp)
         for k, request in enumerate(args.requests):
             cap = args.max_proposals
             base_recipe = code / "pipelines" / "demo.yaml"
@@ -103,10 +107,13 @@ def main(argv: list[str] | None = None) -> None:
                 "no_repairs": (ROOT, no_repairs, args.n),
                 "repairs": (ROOT, recipe, args.n),
             }
-            for side, (where, what, n) in runs.items():
+            for side, (where, what, n) in ((k, v) for k, v in runs.items() if k in sides):
                 results[side][request] = generate(where, what, request, n, tmp / f"{side}{k}", cap)
             print(request, json.dumps({s: results[s][request] for s in sides}), flush=True)
-    print(f"\nrepairs {args.repairs}, width {args.width}; baseline {args.baseline}; one process each")
+    labels = ", ".join(args.repair_labels or ["all"])
+    print(
+        f"\nrepairs {args.repairs} ({labels}), width {args.width}; baseline {args.baseline}; one process each"
+    )
     print(
         "| request | run | accepted / tries (first pass) | tries per accepted | proposer ms per first-pass "
         "proposal | proposer CPU-s per accepted | CPU-s per accepted |"

@@ -22,7 +22,7 @@ from scenegen.propose.base import AssetChoice, proposal_rng, register_proposer
 from scenegen.propose.procedural import DEFAULT_CAMERAS, jitter_cameras
 from scenegen.propose.separate import separate
 from scenegen.schema.condition import RARE_TAGS, Condition
-from scenegen.schema.scene import Camera, SceneProposal
+from scenegen.schema.scene import Camera, RejectionLabel, SceneProposal
 
 
 def require_encoding(config: dict, checkpoint: str) -> None:
@@ -51,6 +51,7 @@ class DiffusionSettings(AssetChoice):
         "repairs": 0,
         "repair_width": 1,
         "repair_strength": 0.75,
+        "repair_labels": None,
         "solver": "ddim",
         "soft_occluded": False,
         "arm_clearance": False,
@@ -72,6 +73,10 @@ class DiffusionSettings(AssetChoice):
     repairs: int = Field(0, ge=0, le=64)  # re-samplings of a failed proposal's culprits (propose/repair.py)
     repair_width: int = Field(1, ge=1, le=8)  # repairs per expansion: 1 a chain, more a best-first search
     repair_strength: float = Field(0.75, gt=0.0, le=1.0)  # a repair starts this far into the schedule
+    # the rejection labels that are repaired (None: all but unrealistic and render_failed); a repair of
+    # a missing tag succeeded less often than a fresh proposal (docs/generator.md), one of a geometric
+    # failure more often
+    repair_labels: tuple[RejectionLabel, ...] | None = None
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)

@@ -95,16 +95,20 @@ def repair_step(rejection: Rejection, parent: SceneProposal, attempt: int, resam
 @dataclass
 class RepairSearch:
     """The tries of one proposal index. ``budget``: repairs allowed after the first pass; ``width``:
-    repairs made per expansion (1: a chain). :meth:`expand` is called when every try sent out has
-    come back; it returns the next tries' parents, or () when the search is over."""
+    repairs made per expansion (1: a chain); ``labels``: the rejection labels that are repaired (None:
+    every one but those of ``NOT_REPAIRED``). :meth:`next_parents` is called when every try sent out
+    has come back; it returns the next tries' parents, or [] when the search is over."""
 
     budget: int
     width: int = 1
+    labels: tuple[str, ...] | None = None
     used: int = 0
     frontier: list = field(default_factory=list)  # (severity, attempt, proposal, rejection)
 
     def add(self, proposal: SceneProposal, rejection: Rejection) -> None:
         """A try came back rejected."""
+        if self.labels is not None and rejection.label not in self.labels:
+            return
         if rejection.label not in NOT_REPAIRED:
             self.frontier.append((severity(rejection), proposal.attempt, proposal, rejection))
 

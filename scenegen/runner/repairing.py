@@ -78,7 +78,8 @@ def repaired_outcomes(
                     if proposal is None:
                         exhausted = True
                         break
-                    indices[proposal.index] = _Index(RepairSearch(settings.repairs, settings.repair_width))
+                    search = RepairSearch(settings.repairs, settings.repair_width, settings.repair_labels)
+                    indices[proposal.index] = _Index(search)
                     order.append(proposal.index)
                     _send(runner, indices[proposal.index], proposal)
                 while order and indices[order[0]].done:

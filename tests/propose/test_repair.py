@@ -189,3 +189,11 @@ def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(tm
     (killed / "manifest.yaml").unlink()
     assert main(["generate", str(path), "--out", str(killed), "--workers", "1", "--quiet"]) == 0
     assert files(killed) == one
+
+
+def test_the_search_repairs_only_the_labels_it_is_given(proposal):
+    geometric = RepairSearch(budget=2, labels=("collision", "out_of_workspace"))
+    geometric.add(proposal, rejection("condition_unmet", "required occluded = 0.0 fraction", "tag"))
+    assert geometric.next_parents() == []  # a missing tag: a fresh proposal does better
+    geometric.add(proposal.model_copy(update={"attempt": 1}), rejection("collision", ""))
+    assert [k for _, _, k in geometric.next_parents()] == [1]
