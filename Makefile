@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-realism bench-env bench-primitives sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -99,6 +99,12 @@ bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and
 
 bench-null: setup  ## 2,000 null-condition scenes of the generator against the held-out reference (benchmarks/null_condition.py)
 	$(BIN)/python benchmarks/null_condition.py
+
+bench-proposer: setup  ## the proposer's own CPU per proposal, baseline commit vs this checkout, same proposals (benchmarks/proposer_cpu.py, ~3 min)
+	$(BIN)/python benchmarks/proposer_cpu.py
+
+bench-repair: setup  ## multi-tag requests: tries and CPU per accepted scene, baseline vs v2 cost terms without and with repairs (benchmarks/repair_yield.py, ~20 min)
+	$(BIN)/python benchmarks/repair_yield.py
 
 bench-env: setup  ## environment reset and step costs, with and without a camera (benchmarks/env_step.py)
 	$(BIN)/python benchmarks/env_step.py
