@@ -117,6 +117,27 @@ def check_collision(
 @functools.lru_cache(maxsize=8)
 def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
     """The arm and gripper's collision geoms at ``robot_pose`` as one solid, and the shoulder position."""
+    pieces, corners, shoulder = _robot_geoms(tuple(robot_pose))
+    pts = np.concatenate(corners)
+    return Solid("robot", pieces, pts.min(0), pts.max(0)), shoulder
+
+
+@functools.lru_cache(maxsize=8)
+def arm_discs(robot_pose: tuple[float, ...]) -> np.ndarray:
+    """The arm's and gripper's collision geoms at ``robot_pose`` as discs in the table plane (G, 4):
+    x, y of the centre of the geom's box, its lowest point z, the radius that holds its box (m).
+    What the generator's soft arm clearance (diffusion/cost.py) keeps objects out of."""
+    discs = []
+    for c in _robot_geoms(tuple(robot_pose))[1]:
+        centre = (c[:, :2].min(0) + c[:, :2].max(0)) / 2
+        discs.append([*centre, c[:, 2].min(), float(np.linalg.norm(c[:, :2] - centre, axis=1).max())])
+    return np.asarray(discs)
+
+
+@functools.lru_cache(maxsize=8)
+def _robot_geoms(robot_pose: tuple[float, ...]):
+    """The arm and gripper's collision geoms at ``robot_pose``: fcl pieces, each geom's corners in the
+    world frame (its vertices, box corners or bounding sphere's box), and the shoulder position."""
     import mujoco
 
     model = world.robot_spec().compile()
@@ -144,25 +165,8 @@ def robot_geometry(robot_pose: tuple[float, ...]) -> tuple[Solid, np.ndarray]:
             geom = fcl.Sphere(r)
         pieces.append(fcl.CollisionObject(geom, fcl.Transform(rot.copy(), pos.copy())))
         corners.append(local @ rot.T + pos)
-    pts = np.concatenate(corners)
     shoulder = data.body("robot0_link1").xpos.copy()
-    discs = []
-    for c in corners:  # each geom as a disc in the table plane: centre, lowest point, radius
-        centre = (c[:, :2].min(0) + c[:, :2].max(0)) / 2
-        discs.append([*centre, c[:, 2].min(), float(np.linalg.norm(c[:, :2] - centre, axis=1).max())])
-    _ARM_DISCS[tuple(robot_pose)] = np.asarray(discs)
-    return Solid("robot", tuple(pieces), pts.min(0), pts.max(0)), shoulder
-
-
-_ARM_DISCS: dict[tuple[float, ...], np.ndarray] = {}
-
-
-def arm_discs(robot_pose: tuple[float, ...]) -> np.ndarray:
-    """The arm's and gripper's collision geoms at ``robot_pose`` as discs in the table plane (G, 4):
-    x, y of the centre of the geom's box, its lowest point z, the radius that holds its box (m).
-    What the generator's soft arm clearance (diffusion/cost.py) keeps objects out of."""
-    robot_geometry(tuple(robot_pose))
-    return _ARM_DISCS[tuple(robot_pose)]
+    return tuple(pieces), tuple(corners), shoulder
 
 
 def check_robot_clearance(

@@ -215,11 +215,23 @@ def furniture_boxes(piece: FurniturePlacement) -> list[tuple[np.ndarray, np.ndar
     ]
 
 
-def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
-    """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
+def _box_corners(asset: Asset, pose: int) -> np.ndarray:
+    """(8, 3) corners of the asset's bounding box in resting pose ``pose`` (yaw 0), about its origin."""
     ext = np.asarray(asset.extents) / 2
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * ext
-    return (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, :2]
+    return corners @ quat_to_matrix(asset.resting_poses[pose].quat).T
+
+
+def _footprint_corners(asset: Asset, pose: int) -> np.ndarray:
+    """xy (8, 2) of the corners of the asset's bounding box in resting pose ``pose`` (yaw 0)."""
+    return _box_corners(asset, pose)[:, :2]
+
+
+def pose_top(asset: Asset, pose: int) -> float:
+    """Height (m) of the asset's top above its origin when it rests in pose ``pose`` (its bounding
+    box's height less the origin's height above the support)."""
+    z = _box_corners(asset, pose)[:, 2]
+    return float(z.max() - z.min() - asset.resting_poses[pose].height)
 
 
 def footprint_radius(asset: Asset, pose: int) -> float:

@@ -52,7 +52,7 @@ import numpy as np
 import torch
 
 from scenegen.core import layout
-from scenegen.core.layout import FURNITURE_HOME, footprint_half_extents
+from scenegen.core.layout import FURNITURE_HOME, footprint_half_extents, pose_top
 from scenegen.diffusion.encoding import (
     AMBIENT_CENTRE,
     AMBIENT_SCALE,
@@ -81,16 +81,6 @@ OCCLUDED_AIM = 0.7  # soft occluded asks for this share hidden (the predicate: 0
 OCCLUDED_SCALE = 0.3
 SIGHT_SOFT = 0.05  # m: the soft edge of "between the target and the camera"
 ARM_CLEARANCE = 0.03  # m: CheckSettings.robot_clearance
-
-
-def pose_top(asset, pose: int) -> float:
-    """Height (m) of the asset's top above its origin when it rests in pose ``pose``."""
-    from scenegen.core.rotations import quat_to_matrix
-
-    half = np.asarray(asset.extents) / 2
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * half
-    z = (corners @ quat_to_matrix(asset.resting_poses[pose].quat).T)[:, 2]
-    return float(z.max() - z.min() - asset.resting_poses[pose].height)
 
 
 def disc_radius(asset, pose: int) -> float:
@@ -200,12 +190,13 @@ class SceneCost:
             terms["under_overhang"] = self._under_overhang(scene, xy, radius, support_p, target_p) * 0.1
         if "low_light" in self.required:
             terms["low_light"] = torch.relu(self._light_bound(scene, xy, z, target_p) - LOW_LIGHT_BOUND)
-        if "occluded" in self.required and self.camera is not None:
+        occluded = "occluded" in self.required and self.camera is not None
+        if occluded or self.arm is not None:  # the expected top above each object's origin
             top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
+        if occluded:
             hidden = self._hidden(scene, present, xy, z, radius, top)  # (B, K): as if slot k were the target
             terms["occluded"] = (target_p * torch.relu(OCCLUDED_AIM - hidden)).sum(1) * OCCLUDED_SCALE
         if self.arm is not None:
-            top = torch.einsum("bka,ap,bkap->bk", asset_p, self.tops, pose_p)
             terms["arm_clearance"] = self._arm_overlap(present, xy, z, radius, top)
         return terms
 

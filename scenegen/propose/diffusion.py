@@ -277,25 +277,15 @@ class DiffusionProposer:
             inpaint=inpaint,
             solver=s.solver,
         )
-        decoded = self.encoding.decode(
-            objects[0].numpy().astype(np.float64),
-            scene_out[0].numpy().astype(np.float64),
-            parent.condition,
-            parent.cameras,
-            parent.index,
-            parent.seed,
-            substitute=self._substitute(parent.seed, parent.index),
-        )
-        proposal = decoded.proposal
-        if s.separate:
-            proposal = separate(proposal, self.catalog, max_shift=s.max_shift)
+        proposal = self._placed(
+            objects[0], scene_out[0], parent.condition, parent.cameras, parent.index, parent.seed, False
+        ).proposal
         step = repair_step(rejection, parent, attempt, resampled)
         return proposal.model_copy(update={"attempt": attempt, "repairs": (*parent.repairs, step)})
 
     def _sample_group(self, condition: Condition, group: int, seed: int) -> list:
         import torch
 
-        from scenegen.diffusion.encoding import Decoded
         from scenegen.diffusion.model import ConditionBatch
         from scenegen.diffusion.sample import sample
 
@@ -325,19 +315,26 @@ class DiffusionProposer:
         out = []
         for k, (index, rng) in enumerate(zip(indices, rngs, strict=True)):
             cameras = jitter_cameras(rng, s.cameras, s.camera_jitter)
-            tokens, scene_k = objects[k].numpy().astype(np.float64), scene[k].numpy().astype(np.float64)
-            decoded = self.encoding.decode(
-                tokens,
-                scene_k,
-                condition,
-                cameras,
-                index,
-                seed,
-                own_target=s.unconditional,
-                substitute=self._substitute(seed, index),
-            )
-            if s.separate:
-                proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift)
-                decoded = Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))
-            out.append(decoded)
+            out.append(self._placed(objects[k], scene[k], condition, cameras, index, seed, s.unconditional))
         return out
+
+    def _placed(self, objects, scene, condition: Condition, cameras, index: int, seed: int, own_target: bool):
+        """One sample's tokens (slots, object_width), (scene_width) decoded onto resting poses and,
+        with ``separate``, pushed apart: an ``encoding.Decoded``."""
+        from scenegen.diffusion.encoding import Decoded
+
+        s = self.settings
+        decoded = self.encoding.decode(
+            objects.numpy().astype(np.float64),
+            scene.numpy().astype(np.float64),
+            condition,
+            cameras,
+            index,
+            seed,
+            own_target=own_target,
+            substitute=self._substitute(seed, index),
+        )
+        if not s.separate:
+            return decoded
+        proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift)
+        return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

@@ -56,13 +56,18 @@ def repaired_outcomes(
     ``repair(parent, rejection, attempt)`` (the proposer's) makes a repair, ``config.proposer.repairs`` and
     ``repair_width`` bound the search."""
     settings = config.proposer
-    if workers <= 1 and backend.kind == "local":
+    serial = workers <= 1 and backend.kind == "local"
+    if serial:
         init_worker(config.model_dump_json(), False, export)
         runner = _Serial()
     else:
-        threads = _torch_threads(1)
-        initargs = (config.model_dump_json(), True, export, shared_state(config))
-        runner = _Ray(workers, initargs, backend) if backend.kind == "ray" else _Pool(workers, initargs)
+        threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
+        try:
+            initargs = (config.model_dump_json(), True, export, shared_state(config))
+            runner = _Ray(workers, initargs, backend) if backend.kind == "ray" else _Pool(workers, initargs)
+        except BaseException:
+            _torch_threads(threads)
+            raise
     indices: dict[int, _Index] = {}
     order: deque[int] = deque()
     proposals = iter(proposals)
@@ -92,7 +97,7 @@ def repaired_outcomes(
                 _returned(indices[proposal.index], proposal, outcome, runner, repair)
     finally:
         runner.close()
-        if not (workers <= 1 and backend.kind == "local"):
+        if not serial:
             _torch_threads(threads)
 
 
