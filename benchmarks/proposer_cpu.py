@@ -8,11 +8,13 @@ Each configuration runs in a fresh process with one torch thread: the demo recip
 proposer (``pipelines/demo.yaml``: w = 1, cost 0.1, 20 steps) proposes ``--n`` proposals per
 request, and the CPU time (time.process_time) of the whole proposer call and of its ``separate``
 calls is measured. The baseline is that commit's code extracted with `git archive` and run with the
-same virtual environment and the same checkpoint (the one in this checkout), twice: with numpy's
+same virtual environment, its own demo recipe's settings and the checkpoint of this checkout
+(``--baseline-checkpoint``), twice: with numpy's
 default BLAS threads (one per core: how the pipeline's coordinator ran it until the BLAS limit) and
 with one (OPENBLAS_NUM_THREADS=1, as the pipeline runs the proposer now: runner/executors.py
 ``one_blas_thread``); this checkout with one. Proposals are compared too: how many are identical to
-the baseline's, and the largest position difference. Prints a table and writes
+the baseline's, and the largest position difference (none are once the recipe or the checkpoint
+changed). Prints a table and writes
 benchmarks/results/proposer_cpu.json.
 """
 
@@ -28,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+CHECKPOINT = "assets/generator"
 REQUESTS = (
     "retrieve the can clutter",
     "retrieve the mug toppled occluded low_light",
@@ -36,7 +39,7 @@ REQUESTS = (
 )
 
 
-def measure(code: str, requests: list[str], n: int) -> dict:
+def measure(code: str, requests: list[str], n: int, checkpoint: str = CHECKPOINT) -> dict:
     """Run in a child process whose sys.path starts with ``code``: CPU seconds per proposal."""
     sys.path.insert(0, code)
     import time
@@ -58,11 +61,11 @@ def measure(code: str, requests: list[str], n: int) -> dict:
             spent["separate"] += time.process_time() - t0
 
     diffusion.separate = timed_separate
-    checkpoint = str(ROOT / "assets" / "generator")
     out = {}
     for request in requests:
-        config = load_pipeline(ROOT / "pipelines" / "demo.yaml", request=request)
-        settings = config.proposer.model_copy(update={"checkpoint": checkpoint})
+        # the code's own demo recipe (its own settings); the checkpoint from this checkout
+        config = load_pipeline(Path(code) / "pipelines" / "demo.yaml", request=request)
+        settings = config.proposer.model_copy(update={"checkpoint": str(ROOT / checkpoint)})
         proposer = diffusion.DiffusionProposer(settings, config.catalog())
         proposer.propose(config.condition, range(8), 99)  # warm-up: model load, caches
         spent["separate"] = 0.0
@@ -78,10 +81,12 @@ def measure(code: str, requests: list[str], n: int) -> dict:
     return out
 
 
-def run(code: Path, requests: list[str], n: int, blas_threads: int | None = 1) -> dict:
+def run(
+    code: Path, requests: list[str], n: int, blas_threads: int | None = 1, checkpoint: str = CHECKPOINT
+) -> dict:
     script = (
         f"import json, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); import proposer_cpu; "
-        f"print(json.dumps(proposer_cpu.measure({str(code)!r}, {requests!r}, {n})))"
+        f"print(json.dumps(proposer_cpu.measure({str(code)!r}, {requests!r}, {n}, {checkpoint!r})))"
     )
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     if blas_threads is not None:
@@ -120,6 +125,11 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--n", type=int, default=64, help="proposals per request (default 64)")
     parser.add_argument("--baseline", default="bf81ff9", help="commit to compare with (default bf81ff9)")
+    parser.add_argument(
+        "--baseline-checkpoint",
+        default="assets/generator",
+        help="the baseline's checkpoint in this checkout (default assets/generator)",
+    )
     parser.add_argument("--no-baseline", action="store_true", help="measure this checkout only")
     parser.add_argument("--requests", nargs="+", default=list(REQUESTS), help="request texts")
     args = parser.parse_args(argv)
@@ -127,8 +137,9 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         if not args.no_baseline:
             code = extract(args.baseline, Path(tmp))
-            results["baseline_default_blas"] = run(code, args.requests, args.n, blas_threads=None)
-            results["baseline"] = run(code, args.requests, args.n)
+            ckpt = args.baseline_checkpoint
+            results["baseline_default_blas"] = run(code, args.requests, args.n, None, ckpt)
+            results["baseline"] = run(code, args.requests, args.n, 1, ckpt)
         results["current"] = run(ROOT, args.requests, args.n)
     print(f"proposer CPU per first-pass proposal (ms), {args.n} proposals per request, one thread")
     print(

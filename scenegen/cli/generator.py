@@ -22,6 +22,12 @@ def add_commands(sub) -> None:
     tr.add_argument("--out", type=Path, default=Path("runs/checkpoint"), help="checkpoint directory")
     tr.add_argument("--steps", type=int, help="optimizer steps (default 6000)")
     tr.add_argument("--batch-size", type=int, help="layouts per step (default 128)")
+    tr.add_argument(
+        "--lr-decay",
+        type=float,
+        help="last share of the steps over which the learning rate falls to 0 on a half cosine (default 0: "
+        "constant)",
+    )
     tr.add_argument("--d-model", type=int, help="transformer width (default 128)")
     tr.add_argument("--layers", type=int, help="transformer layers (default 4)")
     tr.add_argument("--seed", type=int, help="seed (default 0)")
@@ -70,6 +76,7 @@ def train(args: argparse.Namespace) -> int:
     overrides = {
         "steps": args.steps,
         "batch_size": args.batch_size,
+        "lr_decay": args.lr_decay,
         "d_model": args.d_model,
         "layers": args.layers,
         "seed": args.seed,

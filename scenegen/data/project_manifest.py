@@ -40,7 +40,7 @@ DATASHEET = Datasheet(
         "Rare-case tags are geometric predicates on the settled scene (docs/tags.md), not human labels.",
         "Renders are MuJoCo OpenGL (Mesa on CPU): no textures of real objects, simple lighting.",
         "The generator's null-condition distribution is measurably off the reference (docs/generator.md: "
-        "C2ST 0.647 on 2,000 scenes; toppled and clutter rates outside tolerance).",
+        "C2ST 0.610 on 2,000 scenes; under_overhang, toppled and clutter rates outside tolerance).",
     ],
     out_of_scope=[
         "Claims about real-world transfer: the transfer outcome is measured on a simulated panel (held-out "

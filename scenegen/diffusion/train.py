@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -43,6 +44,9 @@ class TrainSettings(BaseModel):
     steps: int = Field(6000, ge=1)
     batch_size: int = Field(128, ge=2)
     lr: float = Field(1e-3, gt=0)
+    # the last share of the steps over which the learning rate falls to 0 along a half cosine (0:
+    # constant; then a run extended to more steps equals one of those steps)
+    lr_decay: float = Field(0.0, ge=0, le=1)
     weight_decay: float = Field(1e-4, ge=0)
     ema_decay: float = Field(0.999, ge=0, lt=1)
     rare_share: float = Field(0.25, ge=0, le=1)  # share of each batch drawn by rare oversampling
@@ -138,9 +142,22 @@ def loss_curve_png(losses: list[float], size: tuple[int, int] = (640, 360)) -> b
 
 
 def _unextendable(section: dict, key: str) -> dict:
-    """A checkpoint config section without what a resumed run may change: the number of steps (the
-    learning rate is constant, so 6,000 steps extended to 12,000 equal 12,000 in one run)."""
-    return {k: v for k, v in section.items() if k != "steps"} if key == "train" else section
+    """A checkpoint config section without what a resumed run may change: the number of steps when
+    the learning rate is constant (6,000 steps extended to 12,000 then equal 12,000 in one run; a
+    decaying rate depends on the total)."""
+    if key != "train" or section.get("lr_decay", 0.0):
+        return section
+    return {k: v for k, v in section.items() if k != "steps"}
+
+
+def learning_rate(settings: TrainSettings, step: int) -> float:
+    """The learning rate of (0-based) ``step``: ``lr``, falling along a half cosine to 0 over the last
+    ``lr_decay`` share of the steps."""
+    decay = round(settings.lr_decay * settings.steps)
+    start = settings.steps - decay
+    if step < start or decay == 0:
+        return settings.lr
+    return settings.lr * 0.5 * (1.0 + math.cos(math.pi * (step - start) / decay))
 
 
 def _data_predicate_version(path: Path) -> str:
@@ -272,6 +289,8 @@ def train(
         loss = torch.cat([(v_o - target_o).flatten(1), (v_s - target_s)], dim=1).pow(2).mean()
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(settings, step)
         optimizer.step()
         with torch.no_grad():
             for p_ema, p in zip(ema.parameters(), model.parameters(), strict=True):

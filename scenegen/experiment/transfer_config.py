@@ -49,7 +49,8 @@ class Training(_Strict):
 
 class Generation(_Strict):
     """How D and E make their scenes: ``recipe`` (the distributions the reference set came from),
-    ``diffusion`` (D's proposer settings: the default generator's, pipelines/demo.yaml) and
+    ``diffusion`` (D's proposer settings: by default the current generator's, pipelines/demo.yaml;
+    pipelines/transfer.yaml names the pinned ones its artifact was made with) and
     ``max_proposals`` per requested scene before a cell gives up."""
 
     recipe: Path = Path("pipelines/reference.yaml")

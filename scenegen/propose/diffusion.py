@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import ClassVar, Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from scenegen.assets.catalog import Catalog
 from scenegen.paths import PROJECT_ROOT
@@ -55,10 +55,15 @@ class DiffusionSettings(AssetChoice):
         "solver": "ddim",
         "soft_occluded": False,
         "arm_clearance": False,
+        "spacing": False,
+        "upright_off_table": False,
+        "checkpoint_sha256": None,
     }
 
     kind: Literal["diffusion"] = "diffusion"
     checkpoint: str = "assets/generator"  # checkpoint directory (relative paths: to the project root)
+    # the sha256 its model.safetensors must have (None: any); a recipe that must reproduce pins it
+    checkpoint_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
     guidance: float = Field(1.0, ge=0.0, le=20.0)  # w in eps~ = (1 + w) eps(c) - w eps(null)
     steps: int = Field(20, ge=1, le=1000)  # sampling steps
     solver: Literal["ddim", "dpm"] = "ddim"  # DDIM, or DPM-Solver++ 2M (as good at half the steps)
@@ -79,6 +84,8 @@ class DiffusionSettings(AssetChoice):
     repair_labels: tuple[RejectionLabel, ...] | None = None
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
+    spacing: bool = False  # separating also spaces same-support objects as the reference sampler does
+    upright_off_table: bool = False  # objects on the floor, shelf or in the bin decoded upright
     camera_jitter: float = Field(0.03, ge=0.0, le=0.2)
     cameras: tuple[Camera, ...] = DEFAULT_CAMERAS
 
@@ -103,6 +110,19 @@ class DiffusionSettings(AssetChoice):
         config = read_checkpoint_config(path, "generator", "train one with `scenegen train --out DIR`")
         require_encoding(config, checkpoint)
         return checkpoint
+
+    @model_validator(mode="after")
+    def _pinned(self):
+        from scenegen.core.files import sha256_file
+
+        if self.checkpoint_sha256 is not None:
+            found = sha256_file(self.checkpoint_dir() / "model.safetensors")
+            if found != self.checkpoint_sha256:
+                raise ValueError(
+                    f"checkpoint_sha256: {self.checkpoint}/model.safetensors has sha256 {found[:12]}..., "
+                    f"the recipe pins {self.checkpoint_sha256[:12]}...; restore that checkpoint or unpin it"
+                )
+        return self
 
     def checkpoint_dir(self) -> Path:
         path = Path(self.checkpoint)
@@ -333,8 +353,9 @@ class DiffusionProposer:
             seed,
             own_target=own_target,
             substitute=self._substitute(seed, index),
+            upright_off_table=s.upright_off_table,
         )
         if not s.separate:
             return decoded
-        proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift)
+        proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift, spacing=s.spacing)
         return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

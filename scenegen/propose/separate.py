@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 from scenegen.assets.catalog import Catalog
-from scenegen.core.layout import furniture_boxes
+from scenegen.core.layout import footprint_radius, furniture_boxes
 from scenegen.core.solids import (
     MovableSolid,
     Polytope,
@@ -44,6 +44,7 @@ from scenegen.core.solids import (
 from scenegen.schema.scene import ObjectPlacement, SceneProposal
 
 RESTING = 2e-4  # m: pieces overlapping less than this (vertically, or at all) are in resting contact
+SPACED = 1e-3  # m: footprint circles overlapping less than this are spaced (``spacing``)
 
 
 def _direction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -103,18 +104,34 @@ def _pair_push(a: Solid, b: Solid, clearance: float, a_at, b_at) -> np.ndarray |
     return (clearance + depth) * _direction(a_at, b_at) if step is None else step
 
 
+def _spacing_push(a: ObjectPlacement, b: ObjectPlacement, ra: float, rb: float) -> np.ndarray | None:
+    """The push (m, (2,)) that takes ``a``'s footprint circle out of ``b``'s when both rest on the same
+    support, or None when they rest on different ones or their circles do not overlap."""
+    if a.support != b.support:
+        return None
+    d = np.asarray(a.position[:2], float) - np.asarray(b.position[:2], float)
+    need = ra + rb - float(np.hypot(*d))
+    return need * _direction(a.position, b.position) if need > SPACED else None
+
+
 def separate(
     proposal: SceneProposal,
     catalog: Catalog,
     clearance: float = 0.002,
     max_shift: float = 0.05,
     rounds: int = 8,
+    spacing: bool = False,
 ) -> SceneProposal:
-    """``proposal`` with interpenetrating objects pushed apart (see the module docstring)."""
+    """``proposal`` with interpenetrating objects pushed apart (see the module docstring).
+
+    ``spacing``: also push apart two objects on the same support whose footprint circles
+    (``layout.footprint_radius``) overlap, the spacing the procedural sampler draws the reference
+    layouts with (2 % of their same-support pairs are closer; 14 % of the shipped model's, measured)."""
     objects = list(proposal.objects)
     if not objects:
         return proposal
     names = [o.name for o in objects]
+    radii = [footprint_radius(catalog.get(o.asset), o.resting_pose) if spacing else 0.0 for o in objects]
     furniture = [(box[0], box_solid(p.name, [box])) for p in proposal.furniture for box in furniture_boxes(p)]
     bodies = [MovableSolid.of(catalog, o) for o in objects]
     solids: list[Solid] = [body.at(o.position) for body, o in zip(bodies, objects, strict=True)]
@@ -138,6 +155,8 @@ def separate(
                 if objects[i].support == names[j] or objects[j].support == names[i]:
                     continue  # one rests on the other: the support check's business
                 step = _pair_push(a, b, clearance, objects[i].position, objects[j].position)
+                if step is None and spacing:
+                    step = _spacing_push(objects[i], objects[j], radii[i], radii[j])
                 if step is not None:
                     push[i] += 0.5 * step
                     push[j] -= 0.5 * step

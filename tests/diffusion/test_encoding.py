@@ -190,3 +190,49 @@ def test_an_object_inside_the_bins_walls_goes_into_the_bin_with_its_footprint_in
         assert o.position[2] - height == pytest.approx(bin_.z, abs=1e-6)  # on the bin's floor
         assert bin_.margin(o.position[:2]) >= min(radius, *bin_.half) - 1e-5
         assert decoded.projection[slot] >= np.hypot(*(np.asarray(o.position[:2]) - xy)) - 1e-5
+
+
+def test_upright_off_table_decodes_floor_objects_upright_unless_the_target_must_be_toppled(encoding, rows):
+    """``upright_off_table``: an object decoded lying on the floor takes its best upright pose (the
+    reference sampler's rule); without the option, or for a target whose request requires toppled,
+    the model's pose stands."""
+    catalog = load_catalog()
+
+    def both(name: str) -> bool:
+        return len({p.upright for p in catalog.get(name).resting_poses}) == 2
+
+    row = next(
+        r
+        for r in rows
+        if sum(both(o["asset"]) for o in r["objects"]) >= 2
+        and both(next(o["asset"] for o in r["objects"] if o["name"] == r["target"]))
+    )
+    tokens, scene = encoding.encode_row(row)
+    plain = decode(encoding, tokens, scene, row).proposal
+    target = next(k for k, o in enumerate(plain.objects) if o.name == plain.target)
+    lying = tokens.copy()
+    for slot in range(len(row["objects"])):
+        asset = catalog.get(plain.objects[slot].asset)
+        columns = encoding.pose_order[asset.name]
+        flat = [k for k, c in enumerate(columns) if not asset.resting_poses[c].upright]
+        if not flat or not any(asset.resting_poses[c].upright for c in columns):
+            continue
+        lying[slot, encoding.pose_cols] = -1.0
+        lying[slot, encoding.pose_cols.start + flat[0]] = 1.0
+        lying[slot, encoding.support_cols] = -1.0
+        lying[slot, encoding.support_cols.start + 1] = 1.0  # "floor"
+    changed = [s for s in range(len(row["objects"])) if not np.array_equal(lying[s], tokens[s])]
+    assert target in changed and len(changed) >= 2, "pick a row whose objects can lie and stand"
+
+    def poses(condition, **kw):
+        p = encoding.decode(lying, scene, condition, DEFAULT_CAMERAS, **kw).proposal
+        return [catalog.get(o.asset).resting_poses[o.resting_pose].upright for o in p.objects], p
+
+    as_model, _ = poses(Condition(target=row["target_category"]))
+    upright, p = poses(Condition(target=row["target_category"]), upright_off_table=True)
+    assert all(p.objects[s].support == "floor" for s in changed)
+    assert not any(as_model[s] for s in changed) and all(upright[s] for s in changed)
+    toppled = Condition(target=row["target_category"], tags={"toppled": "required"})
+    kept, _ = poses(toppled, upright_off_table=True)
+    for s in changed:
+        assert kept[s] == (s != target)

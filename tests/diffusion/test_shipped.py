@@ -63,3 +63,25 @@ def test_generate_runs_the_demo_recipe_out_of_the_box(tmp_path: Path):
         record = json.loads(path.read_text())
         assert record["generator"]["kind"] == "diffusion"
         assert record["condition"]["target"] == "spoon"
+
+
+def test_the_transfer_experiments_generator_is_pinned_to_the_settings_it_was_made_with():
+    """pipelines/transfer.yaml's D arm reads pipelines/transfer_generator.yaml: the shipped checkpoint
+    pinned by its sha256 (the manifest's), every setting added since at its default (left out of the
+    recipe's dump, so its scenes are those of before), while the demo recipe has the v2 settings on."""
+    import yaml
+
+    from scenegen.experiment.transfer_config import load_transfer_config
+    from scenegen.propose.diffusion import DiffusionSettings
+
+    transfer = load_transfer_config(ROOT / "pipelines" / "transfer.yaml")
+    pinned = load_pipeline(ROOT / transfer.generation.diffusion).proposer
+    manifest = yaml.safe_load((ROOT / "data_manifest.yaml").read_text())
+    model = next(m for m in manifest["models"] if m["name"] == "generator")
+    assert pinned.checkpoint == model["checkpoint"]["path"]
+    weights = sha256_file(GENERATOR / "model.safetensors")
+    assert pinned.checkpoint_sha256 == model["checkpoint"]["sha256"] == weights
+    added = set(DiffusionSettings.OMITTED_AT) - {"assets", "checkpoint_sha256"}
+    assert all(getattr(pinned, key) == DiffusionSettings.OMITTED_AT[key] for key in added)
+    demo = load_pipeline(ROOT / "pipelines" / "demo.yaml").proposer
+    assert demo.spacing and demo.upright_off_table and demo.soft_occluded and demo.arm_clearance

@@ -89,3 +89,32 @@ def test_train_command(tmp_path: Path, capsys: pytest.CaptureFixture):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("scenegen: error: --steps:")
     assert not (tmp_path / "never").exists()
+
+
+def test_learning_rate_decays_on_a_half_cosine_over_the_last_share():
+    from scenegen.diffusion.train import learning_rate
+
+    s = TrainSettings(steps=100, lr=1e-3, lr_decay=0.5)
+    assert [learning_rate(s, i) for i in (0, 49, 50)] == [1e-3, 1e-3, 1e-3]
+    assert learning_rate(s, 75) == pytest.approx(0.5e-3)
+    assert 0 < learning_rate(s, 99) < 1e-5
+    rates = [learning_rate(s, i) for i in range(50, 100)]
+    assert all(a > b for a, b in zip(rates[:-1], rates[1:], strict=True))  # falling every step
+    assert {learning_rate(TrainSettings(steps=100), i) for i in range(100)} == {1e-3}
+
+
+def test_a_decaying_run_is_not_extended_and_does_train(tmp_path: Path):
+    """With a decaying rate the total steps are part of the schedule: resuming with more is refused.
+    The rate reaches the optimizer (the last steps, at a rate near 0, barely move the weights)."""
+    out = tmp_path / "decay"
+    decay = TINY.model_copy(update={"steps": 40, "lr_decay": 0.5, "checkpoint_every": 20})
+    train(REFERENCE, out, decay.model_copy(update={"steps": 40}), progress=False, stop_after=20)
+    with pytest.raises(ValueError, match="another train"):
+        train(REFERENCE, out, decay.model_copy(update={"steps": 60}), progress=False)
+    train(REFERENCE, out, decay, progress=False, stop_after=19)
+    before = {k: v.clone() for k, v in load_file(str(out / "train_state.safetensors")).items()}
+    train(REFERENCE, out, decay, progress=False)  # the 40th step: lr ~ 1e-6
+    after = load_file(str(out / "train_state.safetensors"))
+    weights = [k for k in before if k.startswith("model.")]
+    change = max(float((after[k] - before[k]).abs().max()) for k in weights)
+    assert 0 < change < 1e-4

@@ -64,6 +64,25 @@ def test_a_checkpoint_of_another_scene_encoding_is_refused(recipe: Path, tmp_pat
         load_pipeline(recipe_old)
 
 
+def test_a_recipe_pinned_to_a_checkpoint_loads_only_that_checkpoint(recipe: Path, tmp_path: Path):
+    """``checkpoint_sha256``: the recipe loads while the checkpoint's weights have that sha256, and is
+    refused with a one-line error naming the key once they are replaced (a retrained checkpoint)."""
+    from scenegen.store.batch import sha256_file
+
+    raw = yaml.safe_load(recipe.read_text())
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(raw["proposer"]["checkpoint"], ckpt)
+    raw["proposer"].update(checkpoint=str(ckpt), checkpoint_sha256=sha256_file(ckpt / "model.safetensors"))
+    pinned = tmp_path / "pinned.yaml"
+    pinned.write_text(yaml.safe_dump(raw))
+    assert load_pipeline(pinned).proposer.checkpoint_sha256 == raw["proposer"]["checkpoint_sha256"]
+    with open(ckpt / "model.safetensors", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(ConfigError, match=r"proposer: checkpoint_sha256: .*safetensors has sha256") as err:
+        load_pipeline(pinned)
+    assert "\n" not in str(err.value)
+
+
 def test_proposals_depend_only_on_request_seed_and_index(recipe: Path):
     config = load_pipeline(recipe)
     proposer = PROPOSERS["diffusion"](config.proposer, load_catalog())

@@ -76,3 +76,22 @@ def test_an_object_in_a_bin_wall_is_pushed_into_the_bin(catalog):
     after = separate(before, catalog)
     assert collision(after, catalog).passed
     assert after.objects[0].position[0] < 0.3  # inward, toward the bin's centre
+
+
+def test_spacing_moves_same_support_objects_to_their_footprint_circles(catalog):
+    """``spacing``: two cans that touch without overlapping are left alone by plain separation and
+    pushed to the procedural sampler's spacing (centres at least the sum of footprint radii apart)."""
+    from scenegen.core.layout import footprint_radius
+
+    r = footprint_radius(catalog.get("soda_can"), 0)
+    a = place(catalog, "a", "soda_can", 0.0, 0.0)
+    b = place(catalog, "b", "soda_can", 1.6 * r, 0.0)  # circles overlap by 0.4 r, solids apart
+    p = proposal([a, b])
+    assert collision(p, catalog).passed
+    assert separate(p, catalog) == p
+    spaced = separate(p, catalog, spacing=True)
+    (xa, ya, _), (xb, yb, _) = (o.position for o in spaced.objects)
+    assert math.hypot(xb - xa, yb - ya) >= 2 * r - 1.5e-3
+    assert xa < 0.0 and xb > 1.6 * r and ya == yb == 0.0  # along the line, each half
+    far = proposal([a, place(catalog, "b", "soda_can", 2.5 * r, 0.0)])
+    assert separate(far, catalog, spacing=True) == far
