@@ -316,10 +316,11 @@ class SceneEncoding:
         ``asset`` in ``pose`` (a user asset of the same category, say), or None to leave the slot out
         (never the target's); called in placement order, before snapping.
 
-        ``upright_off_table``: an object on the floor, the shelf or in the bin takes its best-scoring
-        upright resting pose, as the procedural sampler places the reference layouts (none of their
-        shelf or bin objects and 2 % of their floor objects rest otherwise, the shipped model's 26 %,
-        13 % and 29 %); a target whose request requires it toppled keeps its pose."""
+        ``upright_off_table``: an object on the floor, the shelf or in the bin (a table object inside
+        its walls too) takes its best-scoring upright resting pose, as the procedural sampler places
+        the reference layouts (none of their shelf or bin objects and 2 % of their floor objects rest
+        otherwise, the shipped model's 26 %, 13 % and 29 %); a target whose request requires it
+        toppled keeps its pose."""
         tokens, scene = np.asarray(tokens, float), np.asarray(scene, float)
         furniture = self._furniture(scene)
         surfaces = layout.support_surfaces(furniture)
@@ -339,9 +340,14 @@ class SceneEncoding:
             token = tokens[s]
             asset = self.catalog.get(asset_of[s])
             columns = self.pose_order[asset.name]
+            xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, layout.TABLE_TOP_Z]
+            xy = xyz[:2]
+            support = support_of[s]
+            in_bin = support == "table" and "bin" in surfaces and surfaces["bin"].margin(xy) > 0
             scores = token[self.pose_cols][: len(columns)]
             pose = columns[int(np.argmax(scores))]
-            if upright_off_table and support_of[s] in UPRIGHT_SUPPORTS and not (s == target and toppled):
+            off_table = support in UPRIGHT_SUPPORTS or in_bin
+            if upright_off_table and off_table and not (s == target and toppled):
                 upright = [k for k, c in enumerate(columns) if asset.resting_poses[c].upright]
                 pose = columns[max(upright, key=lambda k: scores[k])] if upright else pose
             if substitute is not None:
@@ -349,10 +355,7 @@ class SceneEncoding:
                 if swapped is None and s != target:
                     continue
                 asset, pose = swapped or (asset, pose)
-            xyz = token[self.xyz_cols] * XY_SCALE + [0.0, 0.0, layout.TABLE_TOP_Z]
-            xy = xyz[:2]
             yaw = math.atan2(token[self.yaw_cols][1], token[self.yaw_cols][0])
-            support = support_of[s]
             surface = surfaces.get(support, surfaces["table"])
             xy_on = xy
             if support == "stacked":

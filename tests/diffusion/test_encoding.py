@@ -236,3 +236,33 @@ def test_upright_off_table_decodes_floor_objects_upright_unless_the_target_must_
     kept, _ = poses(toppled, upright_off_table=True)
     for s in changed:
         assert kept[s] == (s != target)
+
+
+def test_upright_off_table_covers_a_table_object_that_the_bin_rule_puts_in_the_bin(encoding, rows):
+    catalog = load_catalog()
+    row = next(r for r in rows if "bin" in {f["kind"] for f in r["furniture"]})
+    tokens, scene = encoding.encode_row(row)
+    bin_ = layout.support_surfaces(decode(encoding, tokens, scene, row).proposal.furniture)["bin"]
+    slot = next(
+        k
+        for k, o in enumerate(row["objects"])
+        if o["name"] != row["target"] and len({p.upright for p in catalog.get(o["asset"]).resting_poses}) == 2
+    )
+    asset = catalog.get(row["objects"][slot]["asset"])
+    columns = encoding.pose_order[asset.name]
+    lying = tokens.copy()
+    lying[slot, encoding.xyz_cols.start : encoding.xyz_cols.start + 2] = np.asarray(bin_.center) / XY_SCALE
+    lying[slot, encoding.support_cols] = -1.0
+    lying[slot, encoding.support_cols.start] = 1.0  # "table", inside the bin's walls
+    lying[slot, encoding.pose_cols] = -1.0
+    lying[
+        slot,
+        encoding.pose_cols.start
+        + next(k for k, c in enumerate(columns) if not asset.resting_poses[c].upright),
+    ] = 1.0
+    condition = Condition(target=row["target_category"])
+    for on in (False, True):
+        o = encoding.decode(lying, scene, condition, DEFAULT_CAMERAS, upright_off_table=on).proposal.objects[
+            slot
+        ]
+        assert o.support == "bin" and asset.resting_poses[o.resting_pose].upright == on
