@@ -28,6 +28,12 @@ def add_commands(sub) -> None:
         help="last share of the steps over which the learning rate falls to 0 on a half cosine (default 0: "
         "constant)",
     )
+    tr.add_argument(
+        "--spread-bins",
+        type=int,
+        help="condition on the layout's spread, in this many equal-count bins of its mean pair distance "
+        "(default 0: not; a recipe then draws it with proposer.draw_spread)",
+    )
     tr.add_argument("--d-model", type=int, help="transformer width (default 128)")
     tr.add_argument("--layers", type=int, help="transformer layers (default 4)")
     tr.add_argument("--seed", type=int, help="seed (default 0)")
@@ -77,6 +83,7 @@ def train(args: argparse.Namespace) -> int:
         "steps": args.steps,
         "batch_size": args.batch_size,
         "lr_decay": args.lr_decay,
+        "spread_bins": args.spread_bins,
         "d_model": args.d_model,
         "layers": args.layers,
         "seed": args.seed,

@@ -8,6 +8,14 @@ probability ``p_unspecified`` (so a request that leaves a tag open gets that tag
 field is independently dropped to its null value with probability ``p_field``, and the whole
 condition is null with probability ``p_null`` (the unconditional branch of classifier-free guidance).
 
+A model trained with spread bins (``TrainSettings.spread_bins``) also sees the layout's *spread*
+(:func:`layout_spread`: the mean xy distance between its objects' centres, in quantile bins of the
+training data, one more value for fewer than two objects), dropped to null with probability
+``p_spread_null`` and whenever the whole condition is null. The reference recipe clusters half its
+layouts, so that distance is bimodal; a model without it blended the two modes into one
+(docs/generator.md). At sampling a proposal draws its spread from the training data's histogram
+(``proposer.draw_spread``), which is the data's own mixture.
+
 Rare examples may be oversampled for the conditional branch only (:func:`batch_indices`): the rare
 draws are never given the null condition, so the unconditional model still learns the data's rates.
 """
@@ -19,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from scenegen.diffusion.encoding import SceneEncoding
+from scenegen.diffusion.encoding import XY_SCALE, SceneEncoding
 from scenegen.diffusion.model import FORBIDDEN, NULL, REQUIRED, UNSPECIFIED, ConditionBatch
 from scenegen.schema.condition import RARE_TAGS, TASKS
 
@@ -27,7 +35,8 @@ from scenegen.schema.condition import RARE_TAGS, TASKS
 @dataclass
 class LayoutTensors:
     """A dataset of N layouts: tokens (N, slots, object_width), scene (N, scene_width), task (N,),
-    target (N,), tags (N, n_tags) bool (measured), pose (N, 7)."""
+    target (N,), tags (N, n_tags) bool (measured), pose (N, 7), spread (N,) its spread bin (None:
+    trained without)."""
 
     objects: torch.Tensor
     scene: torch.Tensor
@@ -35,6 +44,7 @@ class LayoutTensors:
     target: torch.Tensor
     tags: torch.Tensor
     pose: torch.Tensor
+    spread: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.task)
@@ -56,6 +66,32 @@ def layout_tensors(rows: list[dict], encoding: SceneEncoding) -> LayoutTensors:
         tags=torch.tensor([[bool(r[f"tag_{t}"]) for t in RARE_TAGS] for r in rows]),
         pose=torch.tensor([r["robot_pose"] for r in rows], dtype=torch.float32),
     )
+
+
+def layout_spread(objects: torch.Tensor, encoding: SceneEncoding) -> torch.Tensor:
+    """(N,) the mean xy distance (m) between the centres of each layout's present objects, NaN with
+    fewer than two (``realism``'s ``pair_distance_mean``); ``objects`` (N, slots, object_width) tokens."""
+    present = objects[..., 0] > 0
+    xy = objects[..., encoding.xyz_cols.start : encoding.xyz_cols.start + 2] * XY_SCALE
+    dist = torch.cdist(xy, xy)
+    pairs = present[:, :, None] & present[:, None, :] & ~torch.eye(objects.shape[1], dtype=torch.bool)
+    n = pairs.sum((1, 2))
+    return torch.where(n > 0, (dist * pairs).sum((1, 2)) / n.clamp_min(1), torch.tensor(float("nan")))
+
+
+def spread_edges(spread: torch.Tensor, bins: int) -> list[float]:
+    """The ``bins - 1`` inner edges (m) of ``bins`` equal-count bins of the finite ``spread`` values."""
+    finite = spread[torch.isfinite(spread)].double()
+    return [
+        round(float(q), 6) for q in torch.quantile(finite, torch.arange(1, bins, dtype=torch.float64) / bins)
+    ]
+
+
+def spread_bin(spread: torch.Tensor, edges: list[float]) -> torch.Tensor:
+    """(N,) the bin of each spread value: 0 .. len(edges) by the edges, len(edges) + 1 for NaN (fewer
+    than two objects)."""
+    index = torch.bucketize(spread, torch.tensor(edges, dtype=spread.dtype), right=True)
+    return torch.where(torch.isnan(spread), len(edges) + 1, index)
 
 
 def rare_weights(tags: torch.Tensor) -> torch.Tensor:
@@ -91,6 +127,7 @@ def full_condition(data: LayoutTensors, rows: torch.Tensor) -> ConditionBatch:
         tags=tags,
         pose=data.pose[rows].clone(),
         pose_null=torch.zeros(len(rows), dtype=torch.bool),
+        spread=None if data.spread is None else data.spread[rows].clone(),
     )
 
 
@@ -104,6 +141,7 @@ def training_conditions(
     p_null: float = 0.1,
     p_field: float = 0.1,
     p_unspecified: float = 0.5,
+    p_spread_null: float = 0.5,
 ) -> ConditionBatch:
     """Partial conditions for a batch (see the module docstring); ``rare`` rows are never fully null."""
     c = full_condition(data, rows)
@@ -122,4 +160,6 @@ def training_conditions(
     c.target = torch.where(null, torch.tensor(n_targets), c.target)
     c.tags = torch.where(null[:, None], torch.tensor(NULL), c.tags)
     c.pose_null = c.pose_null | null
+    if c.spread is not None:  # -1: the null spread (ConditionBatch.cat)
+        c.spread = torch.where((draw(n) < p_spread_null) | null, -1, c.spread)
     return c

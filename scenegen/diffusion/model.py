@@ -2,7 +2,9 @@
 
 Tokens: one per object slot (no positional encoding, so permuting the slots permutes the output), one
 scene token (furniture and lighting), and condition tokens: task, target category, one per rare tag
-(tag identity + its state), robot initial joint pose, and the diffusion timestep. Every condition
+(tag identity + its state), robot initial joint pose, the diffusion timestep and, for a checkpoint
+trained with ``n_spread`` > 0, the layout's spread (its bin of mean pair distance, see
+diffusion/data.py). Every condition
 field has a learned null value, distinct from any real value (the tag state ``null`` is not
 ``unspecified``, and neither is the tag ``nominal``); the null condition is all fields null.
 One network gives both the conditional and the unconditional prediction. It predicts v (the
@@ -39,19 +41,24 @@ class DenoiserConfig(BaseModel):
     d_model: int = Field(128, ge=1, le=4096)
     layers: int = Field(4, ge=1, le=64)
     heads: int = Field(4, ge=1, le=64)
+    n_spread: int = Field(0, ge=0, le=64)  # spread values (0: no spread token, checkpoints before it)
 
 
 @dataclass
 class ConditionBatch:
     """A batch of conditions as indices: ``task`` (B,) and ``target`` (B,) with the null value at
     index n_tasks / n_targets, ``tags`` (B, n_tags) tag states, ``pose`` (B, pose_dim) radians and
-    ``pose_null`` (B,) bool."""
+    ``pose_null`` (B,) bool; ``spread`` (B,) the layout's spread bin, null at index n_spread (None:
+    null for every row)."""
 
     task: torch.Tensor
     target: torch.Tensor
     tags: torch.Tensor
     pose: torch.Tensor
     pose_null: torch.Tensor
+    spread: torch.Tensor | None = None
+
+    FIELDS = ("task", "target", "tags", "pose", "pose_null", "spread")
 
     def __len__(self) -> int:
         return len(self.task)
@@ -68,16 +75,20 @@ class ConditionBatch:
 
     @staticmethod
     def cat(batches: list[ConditionBatch]) -> ConditionBatch:
-        return ConditionBatch(
-            *(
-                torch.cat([getattr(b, f) for b in batches])
-                for f in ("task", "target", "tags", "pose", "pose_null")
+        """The rows of ``batches`` in order; a batch without ``spread`` has it null (given the null
+        index as -1 until the model reads it)."""
+        spread = None
+        if any(b.spread is not None for b in batches):
+            spread = torch.cat(
+                [torch.full_like(b.task, -1) if b.spread is None else b.spread for b in batches]
             )
+        return ConditionBatch(
+            *(torch.cat([getattr(b, f) for b in batches]) for f in ConditionBatch.FIELDS[:-1]), spread=spread
         )
 
     def index(self, rows) -> ConditionBatch:
         return ConditionBatch(
-            self.task[rows], self.target[rows], self.tags[rows], self.pose[rows], self.pose_null[rows]
+            *(None if getattr(self, f) is None else getattr(self, f)[rows] for f in self.FIELDS)
         )
 
 
@@ -105,6 +116,8 @@ class Denoiser(nn.Module):
         self.tag_state = nn.Embedding(4, d)  # unspecified, required, forbidden, null
         self.pose_in = nn.Linear(config.pose_dim, d)
         self.pose_null = nn.Parameter(torch.zeros(d))
+        if config.n_spread:
+            self.spread = nn.Embedding(config.n_spread + 1, d)  # last index: null
         self.time = nn.Sequential(nn.Linear(d, d), nn.SiLU(), nn.Linear(d, d))
         layer = nn.TransformerEncoderLayer(
             d, config.heads, 4 * d, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
@@ -118,11 +131,20 @@ class Denoiser(nn.Module):
             nn.init.zeros_(head.bias)
 
     def condition_tokens(self, c: ConditionBatch, t: torch.Tensor) -> torch.Tensor:
-        """(B, 3 + n_tags + 1, d): task, target, pose, one per tag, timestep."""
+        """(B, 4 + n_tags (+ 1), d): task, target, pose, timestep (, spread), one per tag."""
         pose = torch.where(c.pose_null[:, None], self.pose_null.expand(len(c), -1), self.pose_in(c.pose))
         tags = self.tag_id.weight[None] + self.tag_state(c.tags)
         time = self.time(timestep_embedding(t, self.config.d_model))
-        fixed = torch.stack([self.task(c.task), self.target(c.target), pose, time], dim=1)
+        fixed = [self.task(c.task), self.target(c.target), pose, time]
+        if self.config.n_spread:
+            null = self.config.n_spread
+            spread = (
+                torch.full_like(c.task, null)
+                if c.spread is None
+                else torch.where(c.spread < 0, null, c.spread)
+            )
+            fixed.append(self.spread(spread))
+        fixed = torch.stack(fixed, dim=1)
         return torch.cat([fixed, tags], dim=1) + self.kind.weight[2]
 
     def forward(

@@ -28,7 +28,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from scenegen.assets.catalog import load_catalogs
 from scenegen.core.files import load_rows, sha256_file
-from scenegen.diffusion.data import batch_indices, layout_tensors, tasks, training_conditions
+from scenegen.diffusion.data import (
+    batch_indices,
+    layout_spread,
+    layout_tensors,
+    spread_bin,
+    spread_edges,
+    tasks,
+    training_conditions,
+)
 from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
 from scenegen.schema.condition import RARE_TAGS
@@ -53,6 +61,10 @@ class TrainSettings(BaseModel):
     p_null: float = Field(0.1, ge=0, le=1)
     p_field: float = Field(0.1, ge=0, le=1)
     p_unspecified: float = Field(0.5, ge=0, le=1)
+    # the layout's spread as a condition (diffusion/data.py): this many equal-count bins of its mean
+    # pair distance (0: none), dropped to null with probability p_spread_null
+    spread_bins: int = Field(0, ge=0, le=32)
+    p_spread_null: float = Field(0.5, ge=0, le=1)
     train_timesteps: int = Field(1000, ge=10)
     beta_schedule: str = "squaredcos_cap_v2"
     d_model: int = Field(128, ge=8)
@@ -195,8 +207,11 @@ def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator)
     from safetensors.torch import load_file
 
     saved = json.loads((out / "config.json").read_text())
-    for key in ("denoiser", "encoding", "train", "data", "predicate_version"):
-        if _unextendable(saved[key], key) != _unextendable(config[key], key):
+    # settings added since a checkpoint was made are at their defaults in it
+    saved["train"] = TrainSettings(**saved["train"]).model_dump()
+    saved["denoiser"] = DenoiserConfig(**saved["denoiser"]).model_dump()
+    for key in ("denoiser", "encoding", "train", "data", "predicate_version", "spread"):
+        if _unextendable(saved.get(key), key) != _unextendable(config[key], key):
             raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")
     if saved["step"] > settings.steps:
         raise ValueError(f"{out}: already trained {saved['step']} steps; --steps must be at least that")
@@ -220,6 +235,13 @@ def train(
     catalog = data_catalog(data_path)
     encoding = SceneEncoding(catalog)
     data = layout_tensors(load_rows(data_path, None if settings.split == "all" else settings.split), encoding)
+    spread = None
+    if settings.spread_bins:
+        values = layout_spread(data.objects, encoding)
+        edges = spread_edges(values, settings.spread_bins)
+        data.spread = spread_bin(values, edges)
+        counts = torch.bincount(data.spread, minlength=len(edges) + 2)
+        spread = {"edges": edges, "counts": counts.tolist()}
     denoiser_config = DenoiserConfig(
         object_width=encoding.object_width,
         scene_width=encoding.scene_width,
@@ -230,6 +252,7 @@ def train(
         d_model=settings.d_model,
         layers=settings.layers,
         heads=settings.heads,
+        n_spread=0 if spread is None else len(spread["counts"]),
     )
     model = Denoiser(denoiser_config)
     ema = copy.deepcopy(model).requires_grad_(False)
@@ -249,6 +272,7 @@ def train(
         "train": settings.model_dump(),
         "data": {"path": str(data_path), "sha256": sha256_file(data_path), "rows": len(data)},
         "predicate_version": _data_predicate_version(data_path),
+        "spread": spread,
         "catalog_sha256": catalog.sha256,
         "step": 0,
         "losses": [],
@@ -275,6 +299,7 @@ def train(
             settings.p_null,
             settings.p_field,
             settings.p_unspecified,
+            settings.p_spread_null,
         )
         x_o, x_s = data.objects[rows], data.scene[rows]
         noise_o = torch.randn(x_o.shape, generator=generator)

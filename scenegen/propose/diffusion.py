@@ -58,6 +58,7 @@ class DiffusionSettings(AssetChoice):
         "spacing": False,
         "upright_off_table": False,
         "checkpoint_sha256": None,
+        "draw_spread": False,
     }
 
     kind: Literal["diffusion"] = "diffusion"
@@ -75,6 +76,9 @@ class DiffusionSettings(AssetChoice):
     soft_occluded: bool = False
     arm_clearance: bool = False
     unconditional: bool = False  # sample the null condition (the model's own distribution)
+    # a request that requires no tag (and the null condition) is given a layout spread drawn from the
+    # training data's histogram, a checkpoint trained with `--spread-bins` (diffusion/data.py)
+    draw_spread: bool = False
     repairs: int = Field(0, ge=0, le=64)  # re-samplings of a failed proposal's culprits (propose/repair.py)
     repair_width: int = Field(1, ge=1, le=8)  # repairs per expansion: 1 a chain, more a best-first search
     repair_strength: float = Field(0.75, gt=0.0, le=1.0)  # a repair starts this far into the schedule
@@ -131,6 +135,7 @@ class DiffusionSettings(AssetChoice):
 
 GROUP = 8  # proposals sampled together: indices 8k .. 8k + 7, whatever the caller asks for
 REPAIR_STREAM = 7  # SeedSequence([seed, index, REPAIR_STREAM, attempt]): a repair's own noise
+SPREAD_STREAM = 11  # SeedSequence([seed, index, SPREAD_STREAM]): a proposal's drawn spread
 
 
 @functools.lru_cache(maxsize=4)
@@ -175,6 +180,11 @@ class DiffusionProposer:
             raise ValueError(
                 f"{settings.checkpoint}: trained on other resting poses of its assets; retrain it"
             )
+        if settings.draw_spread and not self.config.get("spread"):
+            raise ValueError(
+                f"draw_spread: {settings.checkpoint} was trained without the layout's spread; retrain it "
+                "with `scenegen train --spread-bins 8` or turn draw_spread off"
+            )
         self.allowed = None if settings.assets is None else tuple(catalog.get(a) for a in settings.assets)
         self._group_key: tuple | None = None
         self._group: list = []
@@ -206,6 +216,27 @@ class DiffusionProposer:
             pose_null=torch.zeros(1, dtype=torch.bool),
         )
         return c.null_like(self.model.config) if self.settings.unconditional else c
+
+    def _conditions(self, condition: Condition, indices: Sequence[int], seed: int):
+        """The model's condition for proposals ``indices``: the request's (:meth:`condition_batch`)
+        and, with ``draw_spread`` and a request that requires no tag, each proposal's spread bin,
+        drawn from the checkpoint's training histogram with SeedSequence([seed, index, SPREAD_STREAM])
+        (a required tag leaves the spread to the model: the tag decides it, clutter close together)."""
+        import torch
+
+        from scenegen.diffusion.model import ConditionBatch
+
+        c = ConditionBatch.cat([self.condition_batch(condition)] * len(indices))
+        if self.settings.draw_spread and (self.settings.unconditional or not condition.required()):
+            counts = np.asarray(self.config["spread"]["counts"], float)
+            draws = [
+                np.random.default_rng(np.random.SeedSequence([seed, i, SPREAD_STREAM])).choice(
+                    len(counts), p=counts / counts.sum()
+                )
+                for i in indices
+            ]
+            c.spread = torch.tensor(draws, dtype=torch.long)
+        return c
 
     def propose(self, condition: Condition, indices: Sequence[int], seed: int) -> list[SceneProposal]:
         return [self.decoded(condition, i, seed).proposal for i in indices]
@@ -287,7 +318,7 @@ class DiffusionProposer:
         objects, scene_out = sample(
             self.model,
             self.config["train"],
-            self.condition_batch(parent.condition),
+            self._conditions(parent.condition, [parent.index], parent.seed),
             noise_o,
             noise_s,
             w=s.guidance,
@@ -306,7 +337,6 @@ class DiffusionProposer:
     def _sample_group(self, condition: Condition, group: int, seed: int) -> list:
         import torch
 
-        from scenegen.diffusion.model import ConditionBatch
         from scenegen.diffusion.sample import sample
 
         s = self.settings
@@ -323,7 +353,7 @@ class DiffusionProposer:
         objects, scene = sample(
             self.model,
             self.config["train"],
-            ConditionBatch.cat([self.condition_batch(condition)] * GROUP),
+            self._conditions(condition, indices, seed),
             torch.cat(noise_o),
             torch.cat(noise_s),
             w=s.guidance,

@@ -98,3 +98,23 @@ def test_rows_do_not_interact(model):
         full, _ = model(x, s, t, c)
         first, _ = model(x[:1], s[:1], t[:1], c.index(slice(0, 1)))
     assert torch.allclose(full[:1], first, atol=1e-5)
+
+
+def test_the_spread_token_conditions_only_where_it_is_given():
+    """A model with ``n_spread``: a row's spread bin changes its prediction; a missing spread, -1 and
+    the null index are the same null input; the null condition has the null spread; batches with
+    and without spread concatenate, the latter null."""
+    torch.manual_seed(0)
+    net = Denoiser(CONFIG.model_copy(update={"n_spread": 4})).eval()
+    torch.nn.init.normal_(net.object_out.weight, std=0.2)
+    x, s, t, c = batch(4)
+    null = ConditionBatch(*(getattr(c, f) for f in ConditionBatch.FIELDS[:-1]), spread=torch.full((4,), 4))
+    with torch.no_grad():
+        base = net(x, s, t, c)[0]
+        assert torch.equal(base, net(x, s, t, null)[0])
+        assert torch.equal(base, net(x, s, t, ConditionBatch.cat([c.index([0, 1]), null.index([2, 3])]))[0])
+        given = net(
+            x, s, t, ConditionBatch(*(getattr(c, f) for f in ConditionBatch.FIELDS[:-1]), torch.arange(4))
+        )
+        assert not torch.allclose(base, given[0])
+    assert c.null_like(net.config).spread is None  # null

@@ -4,6 +4,7 @@ checkpoint is safetensors + JSON with provenance, and a resumed run equals an un
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -118,3 +119,58 @@ def test_a_decaying_run_is_not_extended_and_does_train(tmp_path: Path):
     weights = [k for k in before if k.startswith("model.")]
     change = max(float((after[k] - before[k]).abs().max()) for k in weights)
     assert 0 < change < 1e-4
+
+
+def test_layout_spread_is_the_mean_pair_distance_of_present_objects():
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.diffusion.data import layout_spread, spread_bin, spread_edges
+    from scenegen.diffusion.encoding import XY_SCALE, SceneEncoding
+
+    encoding = SceneEncoding(load_catalog())
+    tokens = -torch.ones(3, encoding.slots, encoding.object_width)
+    x = encoding.xyz_cols.start
+    for layout, points in enumerate([[(0.0, 0.0), (0.3, 0.4)], [(0, 0), (0.1, 0), (0, 0.1)], [(0.2, 0.2)]]):
+        for slot, (px, py) in enumerate(points):
+            tokens[layout, slot, 0] = 1.0
+            tokens[layout, slot, x : x + 2] = torch.tensor([px, py]) / XY_SCALE
+    spread = layout_spread(tokens, encoding)
+    assert spread[0] == pytest.approx(0.5) and spread[1] == pytest.approx((0.1 + 0.1 + 0.02**0.5) / 3)
+    assert torch.isnan(spread[2])  # one object: no pair
+    assert spread_bin(spread, [0.2, 0.4]).tolist() == [2, 0, 3]  # NaN: one past the last bin
+    values = torch.arange(100, dtype=torch.float64)
+    edges = spread_edges(values, 4)
+    assert torch.bincount(spread_bin(values, edges)).tolist() == [25, 25, 25, 25]
+
+
+def test_a_spread_conditioned_run_records_its_bins_and_resumes(tmp_path: Path):
+    """``spread_bins``: the checkpoint holds the bins' edges and the training layouts' count per bin
+    (what a recipe's ``draw_spread`` samples), the model a spread embedding; a run resumes exactly."""
+    settings = TINY.model_copy(update={"steps": 40, "checkpoint_every": 20, "spread_bins": 4})
+    out = tmp_path / "spread"
+    train(REFERENCE, out, settings, progress=False, stop_after=20)
+    train(REFERENCE, out, settings, progress=False)
+    config = json.loads((out / "config.json").read_text())
+    assert len(config["spread"]["edges"]) == 3 and config["denoiser"]["n_spread"] == 5
+    counts = config["spread"]["counts"]
+    assert sum(counts) == config["data"]["rows"] and max(counts[:4]) - min(counts[:4]) <= 2
+    assert "spread.weight" in load_file(str(out / "model.safetensors"))
+    once = tmp_path / "once"
+    train(REFERENCE, once, settings, progress=False)
+    a, b = load_file(str(out / "model.safetensors")), load_file(str(once / "model.safetensors"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="trained with another"):
+        train(REFERENCE, out, settings.model_copy(update={"spread_bins": 6}), progress=False)
+
+
+def test_a_checkpoint_from_before_a_setting_was_added_resumes(trained: Path, tmp_path: Path):
+    """A config.json written before ``lr_decay``, ``spread_bins`` and ``n_spread`` existed holds them
+    at their defaults: extending such a run is not refused as 'trained with another train'."""
+    out = tmp_path / "old"
+    shutil.copytree(trained, out)
+    config = json.loads((out / "config.json").read_text())
+    for key in ("lr_decay", "spread_bins", "p_spread_null"):
+        del config["train"][key]
+    del config["denoiser"]["n_spread"], config["spread"]
+    (out / "config.json").write_text(json.dumps(config))
+    extended = train(REFERENCE, out, TINY.model_copy(update={"steps": TINY.steps + 10}), progress=False)
+    assert extended["step"] == TINY.steps + 10

@@ -184,3 +184,40 @@ def test_sweep_needs_a_diffusion_recipe(capsys):
     procedural = Path(__file__).resolve().parents[2] / "pipelines" / "procedural.yaml"
     assert main(["sweep", str(procedural), "--quiet"]) == 2
     assert "the sweep needs kind: diffusion" in capsys.readouterr().err
+
+
+def test_draw_spread_conditions_requests_without_required_tags(recipe: Path, tmp_path: Path):
+    """``draw_spread``: refused (one line, naming the key) for a checkpoint trained without spread;
+    with one, a request that requires no tag gets each proposal's spread from its own stream (the
+    same whatever group it is sampled in, only bins the data holds), and it changes the samples; a
+    request with a required tag leaves the spread null."""
+    raw = yaml.safe_load(recipe.read_text())
+    raw["proposer"]["draw_spread"] = True
+    refused = tmp_path / "refused.yaml"
+    refused.write_text(yaml.safe_dump(raw))
+    config = load_pipeline(refused)
+    with pytest.raises(ValueError, match=r"draw_spread: .*--spread-bins"):
+        PROPOSERS["diffusion"](config.proposer, load_catalog())
+
+    settings = TrainSettings(
+        steps=40,
+        batch_size=64,
+        d_model=32,
+        layers=2,
+        heads=2,
+        checkpoint_every=40,
+        split="heldout",
+        spread_bins=4,
+    )
+    train(REFERENCE, tmp_path / "spread", settings, progress=False)
+    drawn = config.proposer.model_copy(update={"checkpoint": str(tmp_path / "spread")})
+    proposer = PROPOSERS["diffusion"](drawn, load_catalog())
+    nominal = config.condition.model_copy(update={"tags": {}})
+    group = proposer._conditions(nominal, range(8), seed=7).spread
+    assert group is not None and group[3] == proposer._conditions(nominal, [3], seed=7).spread[0]
+    counts = proposer.config["spread"]["counts"]
+    assert all(counts[int(b)] > 0 for b in group) and len(set(group.tolist())) > 1
+    assert proposer._conditions(config.condition, range(8), seed=7).spread is None  # near_edge required
+    undrawn = PROPOSERS["diffusion"](drawn.model_copy(update={"draw_spread": False}), load_catalog())
+    a, b = proposer.propose(nominal, range(4), seed=7), undrawn.propose(nominal, range(4), seed=7)
+    assert a != b and proposer.propose(nominal, [2], seed=7) == [a[2]]
