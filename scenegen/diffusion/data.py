@@ -11,10 +11,10 @@ condition is null with probability ``p_null`` (the unconditional branch of class
 A model trained with spread bins (``TrainSettings.spread_bins``) also sees the layout's *spread*
 (:func:`layout_spread`: the mean xy distance between its objects' centres, in quantile bins of the
 training data, one more value for fewer than two objects), dropped to null with probability
-``p_spread_null`` and whenever the whole condition is null. The reference recipe clusters half its
-layouts, so that distance is bimodal; a model without it blended the two modes into one
-(docs/generator.md). At sampling a proposal draws its spread from the training data's histogram
-(``proposer.draw_spread``), which is the data's own mixture.
+``p_spread_null`` on its own draw (so the null condition is seen with a spread and without). The
+reference recipe clusters half its layouts, so that distance is bimodal; a model without it blended
+the two modes into one (docs/generator.md). At sampling a proposal draws its spread from the
+training data's histogram (``proposer.draw_spread``), which is the data's own mixture.
 
 Rare examples may be oversampled for the conditional branch only (:func:`batch_indices`): the rare
 draws are never given the null condition, so the unconditional model still learns the data's rates.
@@ -82,6 +82,8 @@ def layout_spread(objects: torch.Tensor, encoding: SceneEncoding) -> torch.Tenso
 def spread_edges(spread: torch.Tensor, bins: int) -> list[float]:
     """The ``bins - 1`` inner edges (m) of ``bins`` equal-count bins of the finite ``spread`` values."""
     finite = spread[torch.isfinite(spread)].double()
+    if len(finite) < bins:
+        raise ValueError(f"--spread-bins {bins}: only {len(finite)} layouts with two objects or more to bin")
     return [
         round(float(q), 6) for q in torch.quantile(finite, torch.arange(1, bins, dtype=torch.float64) / bins)
     ]
@@ -161,5 +163,7 @@ def training_conditions(
     c.tags = torch.where(null[:, None], torch.tensor(NULL), c.tags)
     c.pose_null = c.pose_null | null
     if c.spread is not None:  # -1: the null spread (ConditionBatch.cat)
-        c.spread = torch.where((draw(n) < p_spread_null) | null, -1, c.spread)
+        # on its own draw, also where the rest is null: the null condition with a drawn spread is what
+        # draw_spread samples (nulled with the rest, the model never saw it: followed in part, measured)
+        c.spread = torch.where(draw(n) < p_spread_null, -1, c.spread)
     return c

@@ -48,8 +48,8 @@ class DenoiserConfig(BaseModel):
 class ConditionBatch:
     """A batch of conditions as indices: ``task`` (B,) and ``target`` (B,) with the null value at
     index n_tasks / n_targets, ``tags`` (B, n_tags) tag states, ``pose`` (B, pose_dim) radians and
-    ``pose_null`` (B,) bool; ``spread`` (B,) the layout's spread bin, null at index n_spread (None:
-    null for every row)."""
+    ``pose_null`` (B,) bool; ``spread`` (B,) the layout's spread bin, null at index n_spread or -1
+    (None: null for every row)."""
 
     task: torch.Tensor
     target: torch.Tensor
@@ -75,8 +75,7 @@ class ConditionBatch:
 
     @staticmethod
     def cat(batches: list[ConditionBatch]) -> ConditionBatch:
-        """The rows of ``batches`` in order; a batch without ``spread`` has it null (given the null
-        index as -1 until the model reads it)."""
+        """The rows of ``batches`` in order; a batch without ``spread`` has it null (-1)."""
         spread = None
         if any(b.spread is not None for b in batches):
             spread = torch.cat(

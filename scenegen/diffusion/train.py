@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from scenegen.assets.catalog import load_catalogs
 from scenegen.core.files import load_rows, sha256_file
@@ -207,9 +207,14 @@ def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator)
     from safetensors.torch import load_file
 
     saved = json.loads((out / "config.json").read_text())
-    # settings added since a checkpoint was made are at their defaults in it
-    saved["train"] = TrainSettings(**saved["train"]).model_dump()
-    saved["denoiser"] = DenoiserConfig(**saved["denoiser"]).model_dump()
+    try:  # settings added since a checkpoint was made are at their defaults in it
+        saved["train"] = TrainSettings(**saved["train"]).model_dump()
+        saved["denoiser"] = DenoiserConfig(**saved["denoiser"]).model_dump()
+    except (KeyError, TypeError, ValidationError) as exc:
+        reason = str(exc).splitlines()[0]
+        raise ValueError(
+            f"{out}/config.json: not a checkpoint this scenegen resumes ({reason}); use a new --out"
+        ) from None
     for key in ("denoiser", "encoding", "train", "data", "predicate_version", "spread"):
         if _unextendable(saved.get(key), key) != _unextendable(config[key], key):
             raise ValueError(f"{out}: checkpoint was trained with another {key}; use a new --out")

@@ -38,6 +38,15 @@ def require_encoding(config: dict, checkpoint: str) -> None:
         )
 
 
+def require_spread(config: dict, settings: DiffusionSettings) -> None:
+    """Raise ValueError when ``draw_spread`` is asked of a checkpoint trained without the spread."""
+    if settings.draw_spread and not config.get("spread"):
+        raise ValueError(
+            f"draw_spread: {settings.checkpoint} was trained without the layout's spread; retrain it "
+            "with `scenegen train --spread-bins 8` or turn draw_spread off"
+        )
+
+
 class DiffusionSettings(AssetChoice):
     """Settings of the diffusion proposer (``proposer.kind: diffusion``). ``assets``
     (:class:`~scenegen.propose.base.AssetChoice`): only these are placed; an object the model decodes
@@ -117,7 +126,10 @@ class DiffusionSettings(AssetChoice):
 
     @model_validator(mode="after")
     def _pinned(self):
-        from scenegen.core.files import sha256_file
+        from scenegen.core.files import read_checkpoint_config, sha256_file
+
+        if self.draw_spread:
+            require_spread(read_checkpoint_config(self.checkpoint_dir(), "generator", "train one"), self)
 
         if self.checkpoint_sha256 is not None:
             found = sha256_file(self.checkpoint_dir() / "model.safetensors")
@@ -180,11 +192,7 @@ class DiffusionProposer:
             raise ValueError(
                 f"{settings.checkpoint}: trained on other resting poses of its assets; retrain it"
             )
-        if settings.draw_spread and not self.config.get("spread"):
-            raise ValueError(
-                f"draw_spread: {settings.checkpoint} was trained without the layout's spread; retrain it "
-                "with `scenegen train --spread-bins 8` or turn draw_spread off"
-            )
+        require_spread(self.config, settings)
         self.allowed = None if settings.assets is None else tuple(catalog.get(a) for a in settings.assets)
         self._group_key: tuple | None = None
         self._group: list = []

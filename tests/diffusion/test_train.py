@@ -137,6 +137,8 @@ def test_layout_spread_is_the_mean_pair_distance_of_present_objects():
     assert spread[0] == pytest.approx(0.5) and spread[1] == pytest.approx((0.1 + 0.1 + 0.02**0.5) / 3)
     assert torch.isnan(spread[2])  # one object: no pair
     assert spread_bin(spread, [0.2, 0.4]).tolist() == [2, 0, 3]  # NaN: one past the last bin
+    with pytest.raises(ValueError, match="--spread-bins 4: only 2 layouts with two objects or more"):
+        spread_edges(spread, 4)
     values = torch.arange(100, dtype=torch.float64)
     edges = spread_edges(values, 4)
     assert torch.bincount(spread_bin(values, edges)).tolist() == [25, 25, 25, 25]
@@ -174,3 +176,10 @@ def test_a_checkpoint_from_before_a_setting_was_added_resumes(trained: Path, tmp
     (out / "config.json").write_text(json.dumps(config))
     extended = train(REFERENCE, out, TINY.model_copy(update={"steps": TINY.steps + 10}), progress=False)
     assert extended["step"] == TINY.steps + 10
+    config["train"]["warmup"] = 100  # a setting this scenegen does not know: one line, no traceback
+    (out / "config.json").write_text(json.dumps(config))
+    with pytest.raises(
+        ValueError, match=r"config.json: not a checkpoint this scenegen resumes .*new --out"
+    ) as err:
+        train(REFERENCE, out, TINY.model_copy(update={"steps": TINY.steps + 20}), progress=False)
+    assert "\n" not in str(err.value)

@@ -195,9 +195,12 @@ def test_draw_spread_conditions_requests_without_required_tags(recipe: Path, tmp
     raw["proposer"]["draw_spread"] = True
     refused = tmp_path / "refused.yaml"
     refused.write_text(yaml.safe_dump(raw))
-    config = load_pipeline(refused)
-    with pytest.raises(ValueError, match=r"draw_spread: .*--spread-bins"):
-        PROPOSERS["diffusion"](config.proposer, load_catalog())
+    with pytest.raises(ConfigError, match=r"draw_spread: .*--spread-bins") as err:
+        load_pipeline(refused)
+    assert "\n" not in str(err.value)
+    config = load_pipeline(recipe)
+    with pytest.raises(ValueError, match=r"draw_spread: .*--spread-bins"):  # settings made without validation
+        PROPOSERS["diffusion"](config.proposer.model_copy(update={"draw_spread": True}), load_catalog())
 
     settings = TrainSettings(
         steps=40,
@@ -210,7 +213,7 @@ def test_draw_spread_conditions_requests_without_required_tags(recipe: Path, tmp
         spread_bins=4,
     )
     train(REFERENCE, tmp_path / "spread", settings, progress=False)
-    drawn = config.proposer.model_copy(update={"checkpoint": str(tmp_path / "spread")})
+    drawn = config.proposer.model_copy(update={"checkpoint": str(tmp_path / "spread"), "draw_spread": True})
     proposer = PROPOSERS["diffusion"](drawn, load_catalog())
     nominal = config.condition.model_copy(update={"tags": {}})
     group = proposer._conditions(nominal, range(8), seed=7).spread
