@@ -96,6 +96,17 @@ def spread_bin(spread: torch.Tensor, edges: list[float]) -> torch.Tensor:
     return torch.where(torch.isnan(spread), len(edges) + 1, index)
 
 
+def bin_spread(data: LayoutTensors, encoding: SceneEncoding, bins: int) -> dict | None:
+    """Give ``data`` its spread bins (``bins`` equal-count bins; 0: none) and return the checkpoint's
+    ``spread`` section: the bins' inner edges (m) and the layouts' count per spread value."""
+    if not bins:
+        return None
+    values = layout_spread(data.objects, encoding)
+    edges = spread_edges(values, bins)
+    data.spread = spread_bin(values, edges)
+    return {"edges": edges, "counts": torch.bincount(data.spread, minlength=len(edges) + 2).tolist()}
+
+
 def rare_weights(tags: torch.Tensor) -> torch.Tensor:
     """Sampling weight per layout: 1 / (rate of its rarest held tag), 0 for layouts holding none."""
     rates = tags.float().mean(0).clamp_min(1.0 / max(len(tags), 1))

@@ -28,15 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from scenegen.assets.catalog import load_catalogs
 from scenegen.core.files import load_rows, sha256_file
-from scenegen.diffusion.data import (
-    batch_indices,
-    layout_spread,
-    layout_tensors,
-    spread_bin,
-    spread_edges,
-    tasks,
-    training_conditions,
-)
+from scenegen.diffusion.data import batch_indices, bin_spread, layout_tensors, tasks, training_conditions
 from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
 from scenegen.schema.condition import RARE_TAGS
@@ -240,13 +232,7 @@ def train(
     catalog = data_catalog(data_path)
     encoding = SceneEncoding(catalog)
     data = layout_tensors(load_rows(data_path, None if settings.split == "all" else settings.split), encoding)
-    spread = None
-    if settings.spread_bins:
-        values = layout_spread(data.objects, encoding)
-        edges = spread_edges(values, settings.spread_bins)
-        data.spread = spread_bin(values, edges)
-        counts = torch.bincount(data.spread, minlength=len(edges) + 2)
-        spread = {"edges": edges, "counts": counts.tolist()}
+    spread = bin_spread(data, encoding, settings.spread_bins)
     denoiser_config = DenoiserConfig(
         object_width=encoding.object_width,
         scene_width=encoding.scene_width,
