@@ -125,7 +125,9 @@ class DiffusionSettings(AssetChoice):
         return checkpoint
 
     @model_validator(mode="after")
-    def _pinned(self):
+    def _fits_checkpoint(self):
+        """The checkpoint has what the settings ask of it: the spread for ``draw_spread``, the pinned
+        weights for ``checkpoint_sha256``."""
         from scenegen.core.files import read_checkpoint_config, sha256_file
 
         if self.draw_spread:
