@@ -26,6 +26,7 @@ from scenegen.perception.retrieval.evaluate import head_predictor, scene_metrics
 from scenegen.perception.retrieval.frames import scene_frames
 from scenegen.perception.retrieval.model import RetrievalHead
 from scenegen.perception.retrieval.train import retrieval_data, train_head
+from scenegen.policy.panels import outside_panels
 
 REFERENCE = Path("assets/reference/reference.parquet")
 
@@ -48,7 +49,8 @@ def main() -> None:
     held = [s for s in load_scenes(REFERENCE, "heldout") if feasible(s)]
     panels = {
         "nominal": [s for s in held if s.tags.get("nominal") and unique(s)][: args.nominal],
-        "rare_unique": [s for s in held if not s.tags.get("nominal") and unique(s)],
+        # no layout of either panel side (version 1 and 2): the rare figures are held-out reporting
+        "rare_unique": outside_panels([s for s in held if not s.tags.get("nominal") and unique(s)]),
     }
     everything = train + [s for p in panels.values() for s in p]
     list(scene_frames(everything, args.cache, args.workers, progress=True))  # render what is missing

@@ -105,6 +105,14 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
     gap.add_argument("--limit", type=int, help="only the first N layouts of each panel (a pilot)")
     gap.add_argument("--out", type=Path, required=True, help="folder for episodes and the summary")
     gap.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    gap.add_argument(
+        "--perception-rules",
+        type=int,
+        choices=(1, 2),
+        default=2,
+        help="how a decision's mask is judged missed: 2 (default) the overlap rule (IoU >= 0.5 in every "
+        "camera that sees the target, nothing where it does not); 1 the centre rule of issue 33's figures",
+    )
     gap.add_argument("--quiet", action="store_true", help="no progress bars")
     gap.set_defaults(run=perception_gap)
 
@@ -126,7 +134,9 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail(first_line(exc))
     if args.limit is not None:
         panel = {name: scenes[: args.limit] for name, scenes in panel.items()}
-    summary = run_gap(args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet)
+    summary = run_gap(
+        args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet, args.perception_rules
+    )
     print(markdown(summary), end="")
     print(f"-> {args.out}")
     return 0

@@ -33,7 +33,9 @@ def _add_label(sub) -> None:
     lab.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
     lab.add_argument("--limit", type=int, help="label only the first N feasible scenes")
     lab.add_argument(
-        "--outside-panels", action="store_true", help="leave out the transfer experiment's panel layouts"
+        "--outside-panels",
+        action="store_true",
+        help="leave out the transfer experiment's panel layouts (version 1 and both sides of version 2)",
     )
     lab.add_argument(
         "--per-tag", type=int, help="only the first N scenes holding each rare tag and N nominal ones"
@@ -120,7 +122,11 @@ def _add_policy(sub) -> None:
     ev.add_argument("--scenes", type=Path, required=True, help="batch directory or reference table")
     ev.add_argument("--split", default="heldout", help="a table's split (default heldout)")
     ev.add_argument("--n", type=int, default=50, help="scenes to run (default 50)")
-    ev.add_argument("--outside-panels", action="store_true", help="skip the transfer experiment's panels")
+    ev.add_argument(
+        "--outside-panels",
+        action="store_true",
+        help="skip the transfer experiment's panel layouts (version 1 and both sides of version 2)",
+    )
     ev.add_argument("--labels", type=Path, help="expert labels of these scenes (for grasp-choice failures)")
     ev.add_argument(
         "--retrieval",
@@ -245,10 +251,9 @@ def policy_eval(args: argparse.Namespace) -> int:
     try:
         scenes = load_scenes(args.scenes, None if args.split == "all" else args.split)
         if args.outside_panels:
-            from scenegen.policy.panels import panel_scene_ids
+            from scenegen.policy.panels import outside_panels
 
-            taken = panel_scene_ids()
-            scenes = [s for s in scenes if s.scene_id not in taken]
+            scenes = outside_panels(scenes)
         scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
         summary = evaluate(
             args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet, args.retrieval

@@ -4,11 +4,13 @@ scene sources mixed by the seed's recipe) and `retrieval eval` (its offline metr
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from scenegen.cli.common import fail, first_line
 
 DEFAULT_CACHE = Path("runs/cache/frames")
+SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py)
 
 
 def add_commands(sub) -> None:
@@ -35,18 +37,33 @@ def add_commands(sub) -> None:
     tr.add_argument("--out", type=Path, required=True, help="checkpoint folder")
     tr.add_argument("--limit", type=int, default=1000, help="scenes per source (default 1000)")
     tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
+    tr.add_argument(
+        "--shuffle",
+        type=int,
+        metavar="SEED",
+        help="a table's training layouts in the seeded order of the transfer experiment's reference sets "
+        "(20: the natural-rate set of the learning curves, docs/retrieval.md) before --limit",
+    )
     tr.add_argument("--alpha", type=float, default=1.0, help="weight of the synthetic sources (default 1)")
     tr.add_argument(
         "--design",
-        choices=("candidates", "segmenter"),
-        default="candidates",
-        help="candidates (default): depth regions named by a crop classifier; segmenter: a U-Net with "
-        "a plane per category (docs/retrieval.md measures both)",
+        choices=("instances", "candidates", "segmenter"),
+        default="instances",
+        help="instances (default): regions split by a learned boundary map, named by a crop classifier; "
+        "candidates: regions split where depth jumps by 4 cm (the design of issue 33); segmenter: a "
+        "U-Net with a plane per category (docs/retrieval.md measures them)",
+    )
+    tr.add_argument(
+        "--separator-steps",
+        type=int,
+        default=SEPARATOR_STEPS,
+        help=f"instances: training steps of the boundary network (default {SEPARATOR_STEPS})",
     )
     tr.add_argument(
         "--steps",
         type=int,
-        help="training steps (default: candidates 6000 batches of 64 crops, segmenter 2000)",
+        help="training steps (default: the crop classifier of instances and candidates 6000 batches of 64 "
+        "crops, segmenter 2000)",
     )
     tr.add_argument(
         "--batch-size", type=int, default=8, help="segmenter: scenes per step, each with both cameras"
@@ -77,7 +94,11 @@ def add_commands(sub) -> None:
     )
     ev.add_argument("--limit", type=int, help="only the first N selected scenes")
     ev.add_argument(
-        "--select", choices=("all", "nominal", "rare"), default="all", help="which scenes (default all)"
+        "--select",
+        choices=("all", "nominal", "rare"),
+        default="all",
+        help="which scenes (default all); from a table or batch, panel layouts are always left out (rare: "
+        "both sides of the version 2 panels; otherwise their test side; and version 1's), and it says so",
     )
     ev.add_argument(
         "--unique-category",
@@ -100,10 +121,24 @@ def _common(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
-def _scenes(source: Path, split: str, limit: int | None):
+def _scenes(source: Path, split: str, limit: int | None, shuffle: int | None = None):
     from scenegen.env.scenes import load_scenes
     from scenegen.manipulation.task import feasible
 
+    if shuffle is not None:
+        if source.suffix != ".parquet" or split != "train":
+            raise ValueError(
+                f"--shuffle: orders a table's training split; {source} (split {split}) is not one"
+            )
+        from scenegen.core.files import load_rows
+        from scenegen.env.scenes import reference_scene
+        from scenegen.experiment.transfer_sources import choose_reference_sets
+
+        rows = load_rows(source, "train")
+        n = min(limit or len(rows), sum(not r["tag_on_floor"] for r in rows))
+        order = choose_reference_sets(rows, n, n, 0, shuffle).a  # the natural-rate prefix of that order
+        by_index = {r["index"]: r for r in rows}
+        return [reference_scene(by_index[i], source.stem) for i in order]
     scenes = [s for s in load_scenes(source, None if split == "all" else split) if feasible(s)]
     return scenes[:limit] if limit is not None else scenes
 
@@ -118,12 +153,15 @@ def retrieval_train(args: argparse.Namespace) -> int:
 
     if args.steps is None:
         args.steps = 6000 if args.design == "candidates" else 2000
-    if min(args.steps, args.batch_size, args.limit, args.workers) < 1 or args.alpha < 0:
-        return fail("--steps, --batch-size, --limit and --workers must be at least 1, --alpha at least 0")
+    if min(args.steps, args.batch_size, args.limit, args.workers, args.separator_steps) < 1 or args.alpha < 0:
+        return fail(
+            "--steps, --separator-steps, --batch-size, --limit and --workers must be at least 1, --alpha at "
+            "least 0"
+        )
     if not 2 <= args.width <= 64:
         return fail("--width must lie between 2 and 64")
     try:
-        scenes = [s for source in args.data for s in _scenes(source, args.split, args.limit)]
+        scenes = [s for source in args.data for s in _scenes(source, args.split, args.limit, args.shuffle)]
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
     if not scenes:
@@ -137,20 +175,35 @@ def retrieval_train(args: argparse.Namespace) -> int:
         ],
         "split": args.split,
         "limit": args.limit,
+        **({"shuffle": args.shuffle} if args.shuffle is not None else {}),
     }
-    if args.design == "candidates":
-        from scenegen.perception.retrieval.candidates import train_classifier
+    if args.design in ("candidates", "instances"):
+        from scenegen.perception.retrieval.candidates import train_classifier, train_instances
 
-        summary = train_classifier(
-            scenes,
-            frames,
-            categories,
-            args.out,
-            args.steps,
-            args.seed,
-            alpha=args.alpha,
-            description=described,
-        )
+        if args.design == "instances":
+            summary = train_instances(
+                scenes,
+                list(frames),
+                categories,
+                args.out,
+                args.steps,
+                args.seed,
+                alpha=args.alpha,
+                description=described,
+                progress=not args.quiet,
+                separator_steps=args.separator_steps,
+            )
+        else:
+            summary = train_classifier(
+                scenes,
+                frames,
+                categories,
+                args.out,
+                args.steps,
+                args.seed,
+                alpha=args.alpha,
+                description=described,
+            )
         print(
             f"{summary['scenes']} scenes ({summary['candidates']} candidates), {args.steps} steps: loss "
             f"{_mean(summary['losses'][:20]):.4f} -> {_mean(summary['losses'][-20:]):.4f} "
@@ -180,6 +233,27 @@ def _mean(values) -> float:
     return sum(values) / max(len(values), 1)
 
 
+def held_out(scenes: list, select: str) -> tuple[list, str]:
+    """The layouts of a table or batch that ``retrieval eval --select`` reports on, and what it says
+    it left out. Held-out figures never include a panel layout: rare and all selections leave out
+    both sides of the version 2 panels (their rare layouts are what the transfer experiment
+    tests) and version 1's; a nominal selection their test side (the validation side's common
+    layouts are the head's tuning set, docs/retrieval.md)."""
+    from scenegen.policy.panels import outside_panels
+
+    if select != "all":
+        scenes = [s for s in scenes if bool(s.tags.get("nominal")) == (select == "nominal")]
+    sides = ("test",) if select == "nominal" else ("test", "validation")
+    kept = outside_panels(scenes, sides)
+    if len(kept) == len(scenes):
+        return kept, ""
+    where = " and ".join(sides) + (" sides" if len(sides) > 1 else " side")
+    return (
+        kept,
+        f"left out {len(scenes) - len(kept)} layouts of the transfer panels (version 1; version 2: {where})",
+    )
+
+
 def retrieval_eval(args: argparse.Namespace) -> int:
     from scenegen.core.files import CheckpointError
     from scenegen.env.scenes import unique_category
@@ -200,7 +274,11 @@ def retrieval_eval(args: argparse.Namespace) -> int:
             scenes = _scenes(args.scenes, args.split, None)
     except (CheckpointError, OSError, ValueError, KeyError) as exc:
         return fail(first_line(exc))
-    if args.select != "all":
+    if args.scenes.suffix != ".json":
+        scenes, said = held_out(scenes, args.select)
+        if said:
+            print(said, file=sys.stderr)
+    elif args.select != "all":
         scenes = [s for s in scenes if bool(s.tags.get("nominal")) == (args.select == "nominal")]
     if args.unique_category:
         scenes = [s for s in scenes if unique_category(s)]

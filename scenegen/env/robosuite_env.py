@@ -28,7 +28,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog, load_catalog, load_catalogs
 from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
-from scenegen.env.scenes import EnvScene
+from scenegen.env.scenes import EnvScene, target_category
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
 from scenegen.sim import world
 
@@ -72,6 +72,8 @@ class SceneEnv(ManipulationEnv):
         render_each_step: bool = True,
     ):
         self.scene = scene
+        # the task's request ("retrieve the mug"): what a learned perception is told to look for
+        self.requested_category = target_category(scene)
         self.render_each_step = render_each_step
         self.catalog = catalog or load_catalog()
         self.cameras = tuple(cameras)
@@ -111,6 +113,8 @@ class SceneEnv(ManipulationEnv):
         """Reset into ``scene``: a new model, objects settled, robot at the scene's initial pose."""
         self._check_cameras(scene)
         self.scene = scene
+        # the task's request ("retrieve the mug"): what a learned perception is told to look for
+        self.requested_category = target_category(scene)
         return self.reset()
 
     # ------------------------------------------------------------------ robosuite hooks

@@ -119,11 +119,13 @@ def simulate(
     again: list[dict] = []  # the re-observations inside the attempt under way
 
     def look_again():
-        obs, view = look(env, perception)
-        plan = None if view is None else plan_top_grasp(view)
-        # the frames show the kinematics computed before the last step's integration: keep that state
+        # the store's record of the state looked at (read before the decision: the head and the
+        # planner see frames only); the frames show the kinematics computed before the last step's
+        # integration: keep that state
         seen = data.qpos.copy()
         mujoco.mj_integratePos(env.sim.model._model, seen, data.qvel, -env.sim.model._model.opt.timestep)
+        obs, view = look(env, perception)
+        plan = None if view is None else plan_top_grasp(view)
         again.append({"qpos": seen.tolist(), "plan": plan_digest(plan)})
         return obs, view
 
@@ -182,13 +184,14 @@ def observe(
     plans = {
         name: decision_token(name, None if view is None else p.plan(view)) for name, p in PRIMITIVES.items()
     }
-    meta = {"plans": plans, "mask_pixels": _mask_pixels(obs, scene.target_id), "score": None}
+    truth = scene.target_id if perception is None else None  # a head's observation holds its prediction
+    meta = {"plans": plans, "mask_pixels": _mask_pixels(obs, truth), "score": None}
     if perception is not None:
         from scenegen.perception.retrieval.evaluate import score_observation
 
         score = score_observation(env, obs)
-        meta["score"] = {"hit": bool(score["hit"]), "wrong_object": bool(score["wrong_object"])}
-    value = state_features(env) if inputs == "state" else policy_input(obs, scene.target_id)
+        meta["score"] = {k: bool(score[k]) for k in ("hit", "hit_iou", "wrong_object")}
+    value = state_features(env) if inputs == "state" else policy_input(obs, truth)
     return value, meta
 
 
@@ -360,22 +363,27 @@ def evaluate_policies(
     progress=None,
     retrieval: Path | None = None,
     cost: Cost | None = None,
+    rules: int | None = None,
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
     policy, scene id, tags, target category, the primitives chosen, success, failure labels.
     ``workers``: an open :class:`Workers` (default: this process); ``retrieval``: the retrieval
     head every decision and re-observation sees through (None: the oracle's masks); ``cost``: a
-    :class:`Cost` to count the sharing and the CPU in. The expert rows stay the oracle's: they say
-    what the physics allows."""
+    :class:`Cost` to count the sharing and the CPU in; ``rules``: the perception rules' version that
+    scores a head's decisions (default ``PERCEPTION_RULES``; observations are kept per version). The
+    expert rows stay the oracle's: they say what the physics allows."""
     import torch
 
+    from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
+
+    rules = PERCEPTION_RULES if rules is None else rules
     if workers is None:
         with Workers(1) as here:
             return evaluate_policies(
-                policies, scenes, store, observations, variant, here, progress, retrieval, cost
+                policies, scenes, store, observations, variant, here, progress, retrieval, cost, rules
             )
     cost = cost if cost is not None else Cost()
-    seen = sight(retrieval, variant)
+    seen = sight(retrieval, variant, rules)
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
     for _ in range(ATTEMPTS):
         for r in runs:  # a policy that has tried every primitive it knows stops; so does the clock
@@ -398,7 +406,7 @@ def evaluate_policies(
     failed = {r.sha: r.scene for r in runs if not r.success}
     known = sorted({p for policy in policies.values() for p in policy.primitives}, key=list(PRIMITIVES).index)
     experts = expert_rows(store, observations, failed.values(), known, workers, progress)
-    return [_record(r, store, experts, policies[r.policy]) for r in runs]
+    return [_record(r, store, experts, policies[r.policy], rules) for r in runs]
 
 
 def expert_rows(
@@ -425,7 +433,9 @@ def expert_rows(
     return experts
 
 
-def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
+def _record(run: _Run, store: PathStore, experts: dict, policy, rules: int) -> dict:
+    from scenegen.perception.retrieval.evaluate import perception_missed
+
     scene = run.scene
     tags = [t for t in RARE_TAGS if scene.tags.get(t)]
     category = target_category(scene)
@@ -439,7 +449,7 @@ def _record(run: _Run, store: PathStore, experts: dict, policy) -> dict:
             features = {
                 **store.get(run.sha, run.tokens[: k + 1])["features"],
                 "mask_pixels": decided["mask_pixels"],
-                "mask_missed": None if score is None else not score["hit"] or score["wrong_object"],
+                "mask_missed": None if score is None else perception_missed(score, rules),
             }
             expert = experts.get(run.sha, ())
             causes.append(

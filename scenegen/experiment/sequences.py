@@ -93,16 +93,24 @@ def path_key(sha: str, tokens: Sequence[str]) -> str:
     return f"{sha}|rules{SEQUENCE_RULES}|" + "|".join(tokens)
 
 
-def sight(retrieval: Path | None, variant: Variant) -> str:
+def sight(retrieval: Path | None, variant: Variant, rules: int | None = None) -> str:
     """What the planners see through: ``oracle`` (the simulator's masks: lighting cannot change a
-    plan), or a retrieval head (its weights' sha256) under ``variant``'s lighting, which its
-    predictions, hence the plans, depend on. It keys observations, not sequences."""
+    plan), or a retrieval head under ``variant``'s lighting, which its predictions, hence the plans,
+    depend on, scored by the perception rules' version ``rules`` (default ``PERCEPTION_RULES``;
+    perception/retrieval/evaluate.py). It keys observations, not sequences. A head is its whole
+    folder's sha256 (an ``instances`` head holds two weight files); version 1 keeps its keys of then
+    (model.safetensors alone), so figures made under it still read their stored observations."""
     if retrieval is None:
         return "oracle"
-    from scenegen.core.files import sha256_file
+    from scenegen.core.files import folder_sha256, sha256_file
+    from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
 
-    digest = sha256_file(Path(retrieval) / "model.safetensors")[:16]
-    return f"retrieval:{digest}@{variant.name}:{variant.light_scale}"
+    rules = PERCEPTION_RULES if rules is None else rules
+    if rules == 1:
+        digest = sha256_file(Path(retrieval) / "model.safetensors")[:16]
+        return f"retrieval:{digest}@{variant.name}:{variant.light_scale}"
+    digest = folder_sha256(Path(retrieval))[:16]
+    return f"retrieval:{digest}@{variant.name}:{variant.light_scale}|perception{rules}"
 
 
 class PathStore:

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.env.scenes import target_category
 from scenegen.perception.points import TargetEstimate, estimate_target, masked_points, target_points
 from scenegen.perception.robot_state import grip_site
 
@@ -45,9 +44,10 @@ KINDS = ("rgbd", "state")
 
 def observe(env, perception=None) -> tuple[dict, TargetView | None]:
     """The camera observation now and what a planner sees in it (None: the target is not seen).
-    ``perception``: a learned target finder (``target_masks(obs, cameras, category, scene)``; the
-    scene gives only the cameras' poses and intrinsics, which a robot knows), or None for
-    the oracle's instance masks. With one, the observation holds no segmentation: per camera the
+    ``perception``: a learned target finder (``target_masks(obs, cameras, category, parameters)``:
+    the frames, the cameras' poses and intrinsics, which a robot knows, and the requested category,
+    the environment's ``requested_category``, set with the task at reset), or None for the oracle's
+    instance masks. With one, the observation holds no segmentation: per camera the
     image, depth, the robot's own pixels (``<cam>_robot_mask``) and the predicted target
     (``<cam>_predicted_target``)."""
     if perception is not None:
@@ -81,7 +81,7 @@ def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
     obs = {f"{name}_{kind}": frames[f"{name}_{kind}"] for name in env.cameras for kind in kept}
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
-    masks = perception.target_masks(obs, env.cameras, target_category(scene), scene)
+    masks = perception.target_masks(obs, env.cameras, env.requested_category, scene.cameras)
     target, others = [], []
     for name in env.cameras:
         depth, robot = obs[f"{name}_depth"], np.squeeze(obs[f"{name}_robot_mask"], -1)

@@ -63,7 +63,7 @@ def run_episode(
             from scenegen.perception.retrieval.evaluate import score_observation
 
             scores.append(score_observation(env, observed[0]))
-        x = policy_input(observed[0], scene.target_id)
+        x = policy_input(observed[0], scene.target_id if perception is None else None)
         choice = policy.choose(torch.from_numpy(x), exclude=tried)
         tried.add(choice)
         outcome, _ = run_primitive(
@@ -75,7 +75,10 @@ def run_episode(
             break
     info = {"touched_other": touched_other, "perception_kind": "oracle" if perception is None else "learned"}
     if perception is not None:
+        from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
+
         info["perception"] = scores
+        info["perception_rules"] = PERCEPTION_RULES  # how failures.py reads the scores
     episode = recorder.finish(success, **info)
     episode.info |= failure_labels(episode, scene.target_id, expert, coverage)
     episode.info["attempts"] = len(tried)

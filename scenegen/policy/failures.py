@@ -10,8 +10,11 @@ The rules, tried in this order on one attempt; the first that holds names its ca
 
 - ``perception``: at the attempt's decision the target's mask is empty or tiny (fewer than
   ``MIN_MASK`` pixels over every camera: the simulator's in the oracle setting, the retrieval head's
-  prediction otherwise), or the predicted mask misses the target or lies mostly on another object
-  (scored against the segmentation: ``episode.info["perception"]``), or the robot touched other
+  prediction otherwise), or the predicted mask misses the target by the perception rules' version
+  the episode records (``episode.info["perception_rules"]``; 1 where none is recorded: the centre
+  rule, no centre on the target or mostly another object; 2: the overlap rule, IoU < 0.5 in a
+  camera that sees the target, or a prediction in one that does not; scored against the
+  segmentation: ``episode.info["perception"]``), or the robot touched other
   objects but never the target;
 - ``grasp_choice`` (first attempt only: the expert labels are measured from the settled state): the
   expert labels say another primitive than the one chosen succeeds on this scene;
@@ -75,7 +78,7 @@ def attempt_features(
     score = scores[attempt] if decisions and attempt < len(scores) else None
     return {
         "mask_pixels": _mask_pixels(decisions[attempt].observation, target_id) if decisions else 0,
-        "mask_missed": None if score is None else not score["hit"] or bool(score["wrong_object"]),
+        "mask_missed": None if score is None else _missed(score, episode.info.get("perception_rules", 1)),
         "touched_target": bool(trace["robot_target_contacts"][rows].max(initial=0) > 0),
         "touched_other": bool(touched_other),
         "lift_max": float(moved.max(initial=0)),
@@ -85,6 +88,12 @@ def attempt_features(
         ),
         "duration": float(trace["time"][rows][-1] - trace["time"][0]),
     }
+
+
+def _missed(score: dict, rules: int) -> bool:
+    from scenegen.perception.retrieval.evaluate import perception_missed
+
+    return perception_missed(score, rules)
 
 
 def attempt_cause(

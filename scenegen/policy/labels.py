@@ -25,7 +25,6 @@ from scenegen.env.scenes import EnvScene, load_scenes, scene_sha256, target_cate
 from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.manipulation.task import feasible, within_limit
 from scenegen.perception.observation import CAMERA_SIZE, CAMERAS, KINDS
-from scenegen.policy.panels import panel_scene_ids
 from scenegen.schema.condition import RARE_TAGS
 from scenegen.store.batch import recover_jsonl
 
@@ -204,8 +203,9 @@ def label(
     source order), for a success table per tag without labelling every scene; ``per_cell`` (N,
     categories): the first N of every (tag, category) cell of those categories (added to ``per_tag``'s
     selection when both are given); ``outside_panels``: leave out the transfer experiment's panel
-    layouts; ``unique``: only scenes holding one object of the target's category (chosen before
-    ``per_tag``). ``limit`` counts feasible scenes (on_floor targets are out of reach, never labelled).
+    layouts (version 1's and both sides of version 2's); ``unique``: only scenes holding one object of
+    the target's category (chosen before ``per_tag``). ``limit`` counts feasible scenes (on_floor
+    targets are out of reach, never labelled).
     ``until_solved``: stop each scene at its first success (``label_until_solved``; ``primitives``,
     if given, is the order), enough to say which scenes are solvable. ``backend``: where the
     ``workers`` run (scenegen.runner.executors.Backend; default a local pool)."""
@@ -224,8 +224,9 @@ def label(
             chosen |= {id(s) for s in per_cell_selection(scenes, *per_cell)}
         scenes = [s for s in scenes if id(s) in chosen]
     if outside_panels:
-        taken = panel_scene_ids()
-        scenes = [s for s in scenes if s.scene_id not in taken]
+        from scenegen.policy.panels import outside_panels as off_panels
+
+        scenes = off_panels(scenes)
     scenes = [s for s in scenes if feasible(s)]
     scenes = scenes[:limit] if limit is not None else scenes
     if until_solved:

@@ -67,3 +67,26 @@ def panel_scene_ids(path: Path = PANELS_FILE) -> set[str]:
     touch the transfer experiment's panels leaves out."""
     panels = load_panels(path)
     return {f"reference_{i:06d}" for i in panels["rare_layouts"] + panels["common"]}
+
+
+PANELS_V2_FILE = ASSETS_DIR / "panels" / "v2" / "panels.json"  # version 2's panels (panels_v2.py)
+
+
+def panel_id(scene) -> str:
+    """A layout's name on a version 2 panel: its table's stem and its id (two tables hold
+    ``reference_000012``)."""
+    return f"{scene.source}/{scene.scene_id}"
+
+
+def panel_ids(sides=("test", "validation"), path: Path = PANELS_V2_FILE) -> set[str]:
+    """The ``panel_id`` of every layout on the given sides of the version 2 panels."""
+    panels = json.loads(Path(path).read_text())
+    return {i for side in sides for ids in panels[side].values() for i in ids}
+
+
+def outside_panels(scenes, sides=("test", "validation")) -> list:
+    """``scenes`` less every layout of the transfer experiment's panels: version 1's (by scene id)
+    and the given ``sides`` of version 2's (by ``panel_id``). What a command that reports held-out
+    figures, or labels outside the panels, keeps."""
+    version1, version2 = panel_scene_ids(), panel_ids(sides)
+    return [s for s in scenes if s.scene_id not in version1 and panel_id(s) not in version2]

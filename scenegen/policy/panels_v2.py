@@ -36,10 +36,9 @@ from scenegen.core.files import sha256_file
 from scenegen.env.scenes import EnvScene, load_scenes, scene_sha256, unique_category
 from scenegen.manipulation.task import feasible
 from scenegen.paths import ASSETS_DIR
-from scenegen.policy.panels import PANEL_TAGS, REFERENCE, SEED
+from scenegen.policy.panels import PANEL_TAGS, PANELS_V2_FILE, REFERENCE, SEED, panel_id  # noqa: F401
 
-PANELS_V2 = ASSETS_DIR / "panels" / "v2"
-PANELS_V2_FILE = PANELS_V2 / "panels.json"
+PANELS_V2 = PANELS_V2_FILE.parent
 LABELS_V2 = PANELS_V2 / "heldout_labels.parquet"
 NEW_SEED = 1
 NEW_LAYOUTS = PANELS_V2 / "reference_seed1.parquet"  # scenegen reference --n 5000 --seed 1
@@ -50,11 +49,6 @@ COMMON_TEST, COMMON_VALIDATION = 100, 50
 RETRIEVAL_VALIDATION = (
     300  # the first unique-category nominal held-out layouts: docs/retrieval.md tuned on them
 )
-
-
-def panel_id(scene: EnvScene) -> str:
-    """A layout's name on a panel: its table's stem and its id (two tables hold ``reference_000012``)."""
-    return f"{scene.source}/{scene.scene_id}"
 
 
 def source_layouts(sources: Sequence[tuple[Path, str | None]] = SOURCES) -> list[EnvScene]:
@@ -225,3 +219,9 @@ def panel_scenes(panels: dict, side: str, sources=SOURCES) -> dict[str, list[Env
             f"panels: {len(missing)} layouts not in the sources (e.g. {missing[0]}): rebuild them"
         )
     return {name: [by_id[i] for i in ids] for name, ids in panels[side].items()}
+
+
+def panel_tags(panels: dict | None = None) -> tuple[str, ...]:
+    """The rare tags that have a panel (``PANEL_TAGS`` order; not the ``short`` ones)."""
+    panels = load_panels_v2() if panels is None else panels
+    return tuple(t for t in PANEL_TAGS if t in panels["validation"])

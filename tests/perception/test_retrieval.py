@@ -130,12 +130,17 @@ def test_the_candidate_design_finds_objects_in_depth_and_names_them(scenes, cach
     """Design (b), measured against the segmenter (benchmarks/retrieval_designs.py): depth regions
     above the table cover most of the visible objects' pixels (how well they split into instances is
     the benchmark's to measure); a tiny classifier trains and picks a region per camera."""
-    from scenegen.perception.retrieval.candidates import CandidatePicker, frame_candidates, train_classifier
+    from scenegen.perception.retrieval.candidates import (
+        CandidatePicker,
+        frame_candidates,
+        robot_pixels,
+        train_classifier,
+    )
 
     frames = list(scene_frames(scenes, cache))
     covered = visible = 0
     for scene, f in zip(scenes, frames, strict=True):
-        regions = frame_candidates(f, scene)
+        regions = frame_candidates(f, scene.cameras, robot_pixels(f, scene))
         for obj in scene.objects:
             for k in range(len(f.cameras)):
                 mask = f.seg[k] == scene.segmentation[obj.name]
@@ -146,7 +151,10 @@ def test_the_candidate_design_finds_objects_in_depth_and_names_them(scenes, cach
     assert visible and covered >= 0.8 * visible
     summary = train_classifier(scenes, frames, CATEGORIES, tmp_path / "b", steps=40)
     assert summary["candidates"] > 0 and summary["losses"][-1] < summary["losses"][0]
-    predictions = CandidatePicker(tmp_path / "b").predict(frames[0], scenes[0], target_category(scenes[0]))
+    robot = robot_pixels(frames[0], scenes[0])
+    predictions = CandidatePicker(tmp_path / "b").predict(
+        frames[0], scenes[0].cameras, target_category(scenes[0]), robot
+    )
     assert len(predictions) == 2 and all(p.mask.shape == (240, 320) for p in predictions)
 
 
@@ -167,4 +175,4 @@ def test_a_category_the_committed_head_does_not_know_is_a_one_line_error():
 
     picker = CandidatePicker(ASSETS_DIR / "retrieval" / "baseline")
     with pytest.raises(ValueError, match="'grocery': this retrieval head knows .*scenegen retrieval train"):
-        picker.predict(None, None, "grocery")  # refused before any frame is read
+        picker.predict(None, None, "grocery", None)  # refused before any frame is read

@@ -3,8 +3,9 @@
 learned classifier that picks the requested category among them.
 
 Candidates, as unseen-object segmentation does it: the depth pixels whose world points lie above the
-table (``ABOVE_TABLE``) within its edges, that are not the robot's own pixels, split into regions
-where neighbouring depths jump by more than ``EDGE`` (connected components of what is left). Each
+table within its edges, that are not the robot's own pixels (regions.py: ``foreground``), split
+into regions where neighbouring depths jump by more than ``EDGE`` (connected components of what is
+left), or, in the ``instances`` design, by the learned separation of separation.py. Each
 region of at least ``MIN_PIXELS`` is a candidate. The classifier sees a candidate's RGB-D crop (its
 long axis turned along the crop's width, ``CROP`` px) and its mask, and gives logits over "no object"
 (furniture, a merged blob) and the categories; the target is the candidate with the highest probability of the
@@ -23,39 +24,19 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from scenegen.perception.points import masked_points
 from scenegen.perception.retrieval.model import Prediction
+from scenegen.perception.retrieval.regions import (  # noqa: F401 - the design's split, re-exported
+    EDGE,
+    MIN_PIXELS,
+    candidate_regions,
+    depth_edge_regions,
+    foreground,
+    robot_pixels,
+)
+from scenegen.perception.retrieval.separation import SEPARATOR_STEPS
 
-EDGE = 0.04  # m: a jump in depth between neighbouring pixels that separates two regions (measured: 1 cm cut
-# the sides of objects seen at a grazing angle into pieces; docs/retrieval.md)
-MIN_PIXELS = 20  # a smaller region is no candidate (as the planner's MIN_POINTS)
 CROP = 32  # px: the classifier's input size
 FILL = 0.8  # of the crop's width the region's long axis fills
-TABLE_TOP, TABLE_HALF, TABLE_MARGIN = 0.8, (0.4, 0.5), 0.05
-ABOVE_TABLE = 0.0015  # m: a fork lies 3 mm high; simulated depth is exact (a real sensor needs more)
-
-
-def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera) -> list[np.ndarray]:
-    """(H, W) bool masks of the candidate regions of one frame (depth in metres, the robot's own
-    pixels, the scene's :class:`~scenegen.schema.scene.Camera`)."""
-    import cv2
-
-    height, width = depth.shape
-    everything = np.ones_like(depth, bool)
-    points = masked_points(np.where(depth > 0, depth, 1.0), everything, camera).reshape(height, width, 3)
-    keep = (
-        (depth > 0)
-        & ~robot_mask
-        & (points[..., 2] > TABLE_TOP + ABOVE_TABLE)
-        & (np.abs(points[..., 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
-        & (np.abs(points[..., 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
-    )
-    edge = np.zeros_like(keep)
-    edge[:, 1:] |= np.abs(np.diff(depth, axis=1)) > EDGE
-    edge[1:, :] |= np.abs(np.diff(depth, axis=0)) > EDGE
-    count, regions = cv2.connectedComponents((keep & ~edge).astype(np.uint8), connectivity=4)
-    sizes = np.bincount(regions.ravel(), minlength=count)
-    return [regions == k for k in range(1, count) if sizes[k] >= MIN_PIXELS]
 
 
 def candidate_crop(rgb: np.ndarray, depth: np.ndarray, region: np.ndarray) -> np.ndarray:
@@ -111,16 +92,17 @@ class CandidateClassifier(nn.Module):
 
 
 def frame_candidates(
-    frames, scene, robot: np.ndarray | None = None
+    frames, cameras, robot: np.ndarray, split=depth_edge_regions
 ) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(camera index, region mask, crop) of every candidate of a scene's frames. ``robot`` (K, H,
-    W): the robot's own pixels, as the environment's self-filter gives them at decision time; by
-    default the renderer's robot instance in the frames' segmentation (training, offline scoring)."""
-    cameras = {c.name: c for c in scene.cameras}
+    """(camera index, region mask, crop) of every candidate of a scene's frames. ``cameras``: the
+    :class:`~scenegen.schema.scene.Camera` parameters (any order; matched to the frames by name);
+    ``robot`` (K, H, W): the robot's own pixels (:func:`robot_pixels`, or the environment's
+    self-filter at decision time). ``split(rgb, depth, robot, camera)``: a frame's regions (the
+    design's: depth edges, or the learned separation of separation.py)."""
+    cameras = {c.name: c for c in cameras}
     out = []
     for k, name in enumerate(frames.cameras):
-        mine = robot[k] if robot is not None else frames.seg[k] == scene.segmentation["robot"]
-        for region in candidate_regions(frames.depth[k], mine, cameras[name]):
+        for region in split(frames.rgb[k], frames.depth[k], robot[k], cameras[name]):
             out.append((k, region, candidate_crop(frames.rgb[k], frames.depth[k], region)))
     return out
 
@@ -145,8 +127,13 @@ def train_classifier(
     alpha: float = 1.0,
     description: dict | None = None,
     progress: bool = False,
+    split=depth_edge_regions,
+    design: dict | None = None,
 ) -> dict:
-    """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames; save it.
+    """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames (regions by
+    ``split``, see :func:`frame_candidates`); save it. ``design``: what config.json says of the
+    design (default: the ``candidate_classifier`` kind; separation.py's ``instances`` adds its
+    separator).
     Batches of 64 are balanced over the labels (a fork is rarer than a box); within a label a
     candidate is drawn by its scene's weight in the seed's mixture (generated sources weighted
     ``alpha``, as the segmenter's and the policy's training draw scenes); each crop is flipped along
@@ -163,7 +150,7 @@ def train_classifier(
     crops, labels, scene_of = [], [], []
     bar = tqdm(zip(scenes, frames, strict=True), total=len(scenes), desc="candidates", disable=not progress)
     for i, (scene, f) in enumerate(bar):
-        for k, region, crop in frame_candidates(f, scene):
+        for k, region, crop in frame_candidates(f, scene.cameras, robot_pixels(f, scene), split):
             crops.append(crop)
             labels.append(region_label(region, f.seg[k], scene, categories))
             scene_of.append(i)
@@ -211,9 +198,65 @@ def train_classifier(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "model.safetensors"))
-    config = {"kind": "candidate_classifier", "categories": list(categories), "width": model.width}
+    config = (design or {"kind": "candidate_classifier"}) | {
+        "categories": list(categories),
+        "width": model.width,
+    }
     (out / "config.json").write_text(json.dumps(config | {"training": summary}, indent=1) + "\n")
     return summary
+
+
+def train_instances(
+    scenes,
+    frames,
+    categories: Sequence[str],
+    out,
+    steps: int = 6000,
+    seed: int = 0,
+    alpha: float = 1.0,
+    description: dict | None = None,
+    progress: bool = False,
+    separator_steps: int = SEPARATOR_STEPS,
+    width: int = 8,
+) -> dict:
+    """The ``instances`` design: a :class:`Separator` trained on the scenes' instance labels, then
+    the crop classifier trained on the regions it gives (as it will see them at prediction time);
+    both saved in ``out`` (separator.safetensors, model.safetensors, config.json). ``frames``: the
+    scenes' frames, a sequence (read twice). Scenes are drawn by the seed's mixture (``alpha``), as
+    the classifier draws them. Returns the classifier's summary with the separator's under
+    ``separator``."""
+    from safetensors.torch import save_file
+
+    from scenegen.env.mixture import scene_weights
+    from scenegen.perception.retrieval.separation import SeparatorRegions, separator_frames, train_separator
+    from scenegen.perception.retrieval.train import default_recipe
+
+    started = time.process_time()
+    inputs, labels, contacts, scene_of = separator_frames(scenes, frames)
+    weights = scene_weights(default_recipe(scenes, alpha), scenes)[scene_of]
+    model, summary = train_separator(
+        inputs, labels, weights, contacts, separator_steps, seed, width=width, progress=progress
+    )
+    del inputs, labels, contacts
+    summary["cpu_seconds"] = round(time.process_time() - started, 1)  # frames' inputs included
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "separator.safetensors"))
+    design = {"kind": "instances", "separator": {"width": width, "training": summary}}
+    result = train_classifier(
+        scenes,
+        frames,
+        categories,
+        out,
+        steps,
+        seed,
+        alpha=alpha,
+        description=description,
+        progress=progress,
+        split=SeparatorRegions(model),
+        design=design,
+    )
+    return result | {"separator": summary, "cpu_seconds": round(time.process_time() - started, 1)}
 
 
 class CandidatePicker:
@@ -236,15 +279,21 @@ class CandidatePicker:
         except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
             raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         self.model.eval()
+        self.split = depth_edge_regions
+        if config.get("kind") == "instances":
+            from scenegen.perception.retrieval.separation import load_separator
 
-    def predict(self, frames, scene, category: str, robot: np.ndarray | None = None) -> list[Prediction]:
-        """The predicted target region per camera of ``frames`` (``robot``: see frame_candidates)."""
+            self.split = load_separator(folder, config, remedy)
+
+    def predict(self, frames, cameras, category: str, robot: np.ndarray) -> list[Prediction]:
+        """The predicted target region per camera of ``frames``: ``cameras`` their parameters,
+        ``robot`` (K, H, W) the robot's own pixels, ``category`` the requested one."""
         if category not in self.model.categories:  # a user catalog's category, say
             raise ValueError(
                 f"category {category!r}: this retrieval head knows {', '.join(self.model.categories)}; "
                 "train one on scenes that hold it (scenegen retrieval train), or use the oracle"
             )
-        candidates = frame_candidates(frames, scene, robot)
+        candidates = frame_candidates(frames, cameras, robot, self.split)
         empty = np.zeros(frames.depth.shape[1:], bool)
         predictions = [Prediction(empty, 0.0) for _ in frames.cameras]
         if not candidates:

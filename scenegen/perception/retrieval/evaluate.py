@@ -8,8 +8,14 @@ segmentation, read here for scoring only):
 - ``miss``: the target is visible (at least ``MIN_VISIBLE`` pixels) and nothing is predicted;
 - ``false_alarm``: the target is not visible in this camera and something is predicted.
 
-A scene is hit when every camera's prediction that exists hits and at least one does: the planner
-back-projects the target's pixels of every camera together, so one wrong camera spoils the points.
+A scene is hit (``hit``, the centre rule, version 1) when every camera's prediction that exists hits
+and at least one does: the planner back-projects the target's pixels of every camera together, so
+one wrong camera spoils the points. The centre rule counts a mask that holds the target and the
+object under it as found; the overlap rule (``hit_iou``, version 2, ``PERCEPTION_RULES``) does not:
+a scene counts when every camera that sees the target (``MIN_VISIBLE`` pixels or more) predicts a
+region with IoU >= ``IOU_HIT`` against the true target mask and every camera that does not see it
+predicts nothing. The closed loop's perception failure rule (:func:`perception_missed`) is the
+version's scene rule.
 """
 
 from __future__ import annotations
@@ -26,6 +32,19 @@ from scenegen.perception.retrieval.model import Prediction, RetrievalHead
 from scenegen.perception.retrieval.perceive import predict_target
 
 MIN_VISIBLE = 20  # pixels of the true target for it to count as visible in a camera (as MIN_POINTS)
+IOU_HIT = 0.5  # the overlap rule's IoU
+# 1: the centre rule (a prediction's centre on the target, none on another object); 2: the overlap rule
+PERCEPTION_RULES = 2
+
+
+def perception_missed(score: dict, rules: int = PERCEPTION_RULES) -> bool:
+    """Whether a scored decision (``score_observation``'s scene-level keys) missed the target, by the
+    rules' version: 1, no centre hit or mostly another object; 2, not an overlap hit."""
+    if rules == 1:
+        return not score["hit"] or bool(score["wrong_object"])
+    if rules == 2:
+        return not score["hit_iou"]
+    raise ValueError(f"perception rules {rules}: versions 1 and 2 exist")
 
 
 def image_metrics(prediction: Prediction, seg: np.ndarray, target_id: int, object_ids: Sequence[int]) -> dict:
@@ -34,16 +53,18 @@ def image_metrics(prediction: Prediction, seg: np.ndarray, target_id: int, objec
     visible = int(true.sum()) >= MIN_VISIBLE
     if prediction.empty:
         nothing = {"iou": 0.0, "hit": False, "wrong_object": False, "false_alarm": False}
-        return {"visible": visible, "predicted": False, "miss": visible} | nothing
+        return {"visible": visible, "predicted": False, "miss": visible, "iou_hit": not visible} | nothing
     mask = prediction.mask
     union = np.logical_or(mask, true).sum()
     rows, cols = np.nonzero(mask)
     centre = true[int(round(rows.mean() - 0.5)), int(round(cols.mean() - 0.5))]
     others = np.isin(seg[mask], [i for i in object_ids if i != target_id]).mean()
+    iou = float(np.logical_and(mask, true).sum() / union)
     return {
         "visible": visible,
         "predicted": True,
-        "iou": float(np.logical_and(mask, true).sum() / union),
+        "iou": iou,
+        "iou_hit": visible and iou >= IOU_HIT,
         "hit": bool(centre),
         "wrong_object": bool(others > 0.5),
         "miss": False,
@@ -53,10 +74,12 @@ def image_metrics(prediction: Prediction, seg: np.ndarray, target_id: int, objec
 
 def scene_metrics(predict, scene: EnvScene, frames: Frames) -> dict:
     """Per camera metrics and the scene's hit, for ``scene`` and its ``frames``; ``predict(frames,
-    scene, category)`` gives a :class:`Prediction` per camera (:func:`head_predictor` for the
-    segmenter; the candidate design's ``CandidatePicker.predict``)."""
+    cameras, category, robot)`` gives a :class:`Prediction` per camera (:func:`head_predictor` for
+    the segmenter; the candidate designs' ``CandidatePicker.predict``)."""
+    from scenegen.perception.retrieval.candidates import robot_pixels
+
     category = target_category(scene)
-    predictions = predict(frames, scene, category)
+    predictions = predict(frames, scene.cameras, category, robot_pixels(frames, scene))
     ids = [scene.segmentation[o.name] for o in scene.objects]
     per_camera = {
         camera: image_metrics(p, seg, scene.target_id, ids)
@@ -73,16 +96,18 @@ def scene_metrics(predict, scene: EnvScene, frames: Frames) -> dict:
 
 
 def head_predictor(head: RetrievalHead):
-    """``predict(frames, scene, category)`` of a segmenter: it reads the frames' RGB-D only."""
-    return lambda frames, scene, category: predict_target(head, frames.rgb, frames.depth, category)
+    """``predict(frames, cameras, category, robot)`` of a segmenter: it reads the frames' RGB-D only."""
+    return lambda frames, cameras, category, robot: predict_target(head, frames.rgb, frames.depth, category)
 
 
 def _scene_level(per_camera: dict) -> dict:
-    """A scene's hit (every camera's prediction that exists hits, and one does at least) and
-    whether any camera's prediction lies mostly on another object."""
+    """A scene's hit (every camera's prediction that exists hits, and one does at least), its
+    overlap hit (every camera's ``iou_hit``: IoU >= 0.5 where the target is visible, nothing
+    predicted where it is not) and whether any camera's prediction lies mostly on another object."""
     predicted = [m for m in per_camera.values() if m["predicted"]]
     return {
         "hit": bool(predicted) and all(m["hit"] for m in predicted),
+        "hit_iou": all(m["iou_hit"] for m in per_camera.values()),
         "wrong_object": any(m["wrong_object"] for m in predicted),
     }
 
@@ -114,6 +139,7 @@ def summarise(rows: Sequence[dict]) -> dict:
         return {
             "scenes": len(chosen),
             "scene_hit": mean([r["hit"] for r in chosen]),
+            "scene_hit_iou": mean([r["hit_iou"] for r in chosen]),
             "images_visible": len(seen),
             "iou": mean([m["iou"] for m in seen]),
             "hit": mean([m["hit"] for m in seen]),
@@ -153,7 +179,7 @@ def _cell(value) -> str:
 
 def summary_table(summary: dict) -> str:
     """The summary as a markdown table, a row per tag and one for all scenes."""
-    keys = ("scenes", "scene_hit", "iou", "hit", "wrong_object", "miss", "false_alarm")
+    keys = ("scenes", "scene_hit", "scene_hit_iou", "iou", "hit", "wrong_object", "miss", "false_alarm")
     lines = ["| tag | " + " | ".join(keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for name, block in [("all", summary["all"]), *summary["per_tag"].items()]:
         cells = [_cell(block[k]) for k in keys]

@@ -104,26 +104,37 @@ def _render(scene: EnvScene) -> Frames:
     return frames_of(env.camera_observations())
 
 
-def scene_frames(
-    scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False
-) -> Iterator[Frames]:
-    """The frames of every scene, in order: from ``cache``, or rendered by ``workers`` processes
-    and added to it."""
+def render_missing(scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False) -> int:
+    """Render the frames of the ``scenes`` that ``cache`` does not hold yet (by ``workers``
+    processes) and add them to it; how many were rendered. Nothing is read back."""
     from tqdm import tqdm
 
     from scenegen.runner.executors import ordered_map
 
     store = FrameCache(cache)
-    keys = [frames_key(s) for s in scenes]
-    missing = [(k, s) for k, s in zip(keys, scenes, strict=True) if not store.path(k).exists()]
+    missing = {}
+    for scene in scenes:
+        key = frames_key(scene)
+        if not store.path(key).exists():
+            missing.setdefault(key, scene)
     if missing:
-        rendered = ordered_map(_render, [s for _, s in missing], workers, _init_worker, ())
+        rendered = ordered_map(_render, list(missing.values()), workers, _init_worker, ())
         bar = tqdm(rendered, total=len(missing), desc="rendering frames", disable=not progress)
-        for (key, _), frames in zip(missing, bar, strict=True):
+        for key, frames in zip(missing, bar, strict=True):
             store.put(key, frames)
         if workers <= 1:
             from scenegen.env.robosuite_env import close_worker_envs
 
             close_worker_envs()  # made again on demand
-    for key in keys:
-        yield store.get(key)
+    return len(missing)
+
+
+def scene_frames(
+    scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False
+) -> Iterator[Frames]:
+    """The frames of every scene, in order: from ``cache``, or rendered by ``workers`` processes
+    and added to it."""
+    render_missing(scenes, cache, workers, progress)
+    store = FrameCache(cache)
+    for scene in scenes:
+        yield store.get(frames_key(scene))

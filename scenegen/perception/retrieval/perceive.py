@@ -55,7 +55,7 @@ class RetrievalPerception:
     candidates with a classifier: docs/retrieval.md). ``name`` says which checkpoint."""
 
     def __init__(self, predict, name: str = "retrieval"):
-        self.predict = predict  # (frames, scene, category, robot masks) -> a Prediction per camera
+        self.predict = predict  # (frames, cameras, category, robot masks) -> a Prediction per camera
         self.name = name
 
     @classmethod
@@ -66,19 +66,23 @@ class RetrievalPerception:
 
         remedy = "train one with `scenegen retrieval train --out DIR`"
         kind = read_checkpoint_config(checkpoint, "retrieval head", remedy).get("kind")
-        if kind == "candidate_classifier":
+        if kind in ("candidate_classifier", "instances"):
             return cls(CandidatePicker(checkpoint).predict, str(checkpoint))
         head = RetrievalHead.load(checkpoint)
 
-        def segmenter(frames, scene, category, robot=None):  # it reads the frames' RGB-D only
+        def segmenter(frames, cameras, category, robot):  # it reads the frames' RGB-D only
             return predict_target(head, frames.rgb, frames.depth, category)
 
         return cls(segmenter, str(checkpoint))
 
-    def target_masks(self, obs: dict, cameras: Sequence[str], category: str, scene) -> dict[str, np.ndarray]:
-        """(H, W) bool mask of the predicted target per camera."""
+    def target_masks(
+        self, obs: dict, cameras: Sequence[str], category: str, parameters
+    ) -> dict[str, np.ndarray]:
+        """(H, W) bool mask of the predicted target per camera named in ``cameras``, from what a
+        robot has: the frames of ``obs``, the cameras' ``parameters`` (``Camera`` models), the
+        robot's own pixels and the requested ``category``."""
         rgb = np.stack([obs[f"{c}_image"] for c in cameras])
         depth = np.stack([np.squeeze(obs[f"{c}_depth"], -1) for c in cameras])
         robot = np.stack([np.squeeze(obs[f"{c}_robot_mask"], -1) for c in cameras])
-        predictions = self.predict(Frames(tuple(cameras), rgb, depth, None), scene, category, robot)
+        predictions = self.predict(Frames(tuple(cameras), rgb, depth, None), parameters, category, robot)
         return {c: p.mask for c, p in zip(cameras, predictions, strict=True)}

@@ -1,0 +1,58 @@
+"""The regions of a frame that may be objects: the foreground above the table, and the candidate
+design's split of it where depth jumps (docs/retrieval.md). Shared by the candidate design
+(candidates.py) and the learned separation (separation.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenegen.perception.points import masked_points
+
+EDGE = 0.04  # m: a jump in depth between neighbouring pixels that separates two regions (measured: 1 cm cut
+# the sides of objects seen at a grazing angle into pieces; docs/retrieval.md)
+MIN_PIXELS = 20  # a smaller region is no candidate (as the planner's MIN_POINTS)
+TABLE_TOP, TABLE_HALF, TABLE_MARGIN = 0.8, (0.4, 0.5), 0.05
+ABOVE_TABLE = 0.0015  # m: a fork lies 3 mm high; simulated depth is exact (a real sensor needs more)
+
+
+def foreground(depth: np.ndarray, robot_mask: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's foreground, (H, W) bool: the depth pixels whose world points lie above the table
+    (``ABOVE_TABLE``) within its edges and that are not the robot's own pixels; and (H, W) the
+    points' height above the table top in metres."""
+    height, width = depth.shape
+    everything = np.ones_like(depth, bool)
+    points = masked_points(np.where(depth > 0, depth, 1.0), everything, camera).reshape(height, width, 3)
+    keep = (
+        (depth > 0)
+        & ~robot_mask
+        & (points[..., 2] > TABLE_TOP + ABOVE_TABLE)
+        & (np.abs(points[..., 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
+        & (np.abs(points[..., 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
+    )
+    return keep, points[..., 2] - TABLE_TOP
+
+
+def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera) -> list[np.ndarray]:
+    """(H, W) bool masks of the candidate regions of one frame (depth in metres, the robot's own
+    pixels, the scene's :class:`~scenegen.schema.scene.Camera`): the foreground split where
+    neighbouring depths jump by more than ``EDGE``."""
+    import cv2
+
+    keep, _ = foreground(depth, robot_mask, camera)
+    edge = np.zeros_like(keep)
+    edge[:, 1:] |= np.abs(np.diff(depth, axis=1)) > EDGE
+    edge[1:, :] |= np.abs(np.diff(depth, axis=0)) > EDGE
+    count, regions = cv2.connectedComponents((keep & ~edge).astype(np.uint8), connectivity=4)
+    sizes = np.bincount(regions.ravel(), minlength=count)
+    return [regions == k for k in range(1, count) if sizes[k] >= MIN_PIXELS]
+
+
+def depth_edge_regions(rgb, depth, robot_mask, camera) -> list[np.ndarray]:
+    """The ``candidates`` design's split, with the signature of a region split (``frame_candidates``)."""
+    return candidate_regions(depth, robot_mask, camera)
+
+
+def robot_pixels(frames, scene) -> np.ndarray:
+    """(K, H, W) bool: the robot's own pixels in a scene's rendered frames, from their segmentation
+    (training and offline scoring; at decision time the environment's self-filter gives them)."""
+    return frames.seg == scene.segmentation["robot"]

@@ -1,0 +1,318 @@
+"""Learned instance separation: what splits one object from another is learned from the simulator's
+instance labels, not set by hand (issue 43; the ``instances`` design of docs/retrieval.md).
+
+The candidate design splits the depth pixels above the table where neighbouring depths jump by more
+than 4 cm, so a mug standing on a plate, or a knife lying on a can, is one region with what it
+touches before anything learned sees it. Here a small fully convolutional network, the
+:class:`Separator`, labels every foreground pixel (above the table, within its edges, not the robot:
+``regions.foreground``) as an instance's **interior** or as a **boundary** pixel: one with a
+pixel of another instance at least as high above the table within ``BAND`` px (contour-aware
+segmentation, as DCAN learns it, trained on synthetic RGB-D as UOIS-Net and SD Mask R-CNN are). The
+band lies on the lower object's side of a contact, so a thin object lying on another keeps its
+interior. The connected interiors are the seeds; the other foreground pixels join a touching
+region within ``GROW`` px, the lowest one first; regions of
+``MIN_PIXELS`` or more are the candidates, which the crop classifier then names. A region crosses
+from one object into another only where the network calls a whole band interior.
+
+Input (B, 7, H, W) float32: RGB in [0, 1], depth relative to the foreground's median (per 10 cm,
+clipped to [-1, 1]), the largest depth difference to a 4-neighbour (per ``JUMP``, clipped to [0,
+2]: a feature at full resolution, not a rule), height above the table (per 10 cm, clipped), the
+foreground mask. Output (B, 1, H, W) logits of "interior"; the loss counts foreground pixels only,
+boundary pixels weighted by ``BOUNDARY_WEIGHT``. The network runs on the foreground's bounding box.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+BAND = 2  # px: the boundary band's width on the lower object's side of a contact
+GROW = 4  # px: how far a seed's region reaches past its interior (over the band)
+MIN_SEED = 4  # px: a smaller interior component is noise, no seed
+BOUNDARY_WEIGHT = 10.0  # loss weight of a boundary pixel (few foreground pixels are one)
+PATCH = 80  # px: square training crops
+INTERIOR_LOGIT = 0.0  # a pixel is interior where the network's logit exceeds this (probability 0.5)
+SEPARATOR_STEPS = 3000  # training steps of 8 crops (the instances design's default)
+JUMP = 0.04  # m: the scale of the depth-difference channel (the candidate design's split)
+CHANNELS = 7
+MARGIN = 8  # px around the foreground's bounding box that the network sees at prediction time
+
+
+def separator_input(rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray) -> np.ndarray:
+    """(CHANNELS, H, W) float32 network input of one frame: ``rgb`` (H, W, 3) uint8, ``depth`` (H,
+    W) m, ``keep`` (H, W) bool foreground, ``height`` (H, W) m above the table top."""
+    median = float(np.median(depth[keep])) if keep.any() else 1.0
+    jump = np.zeros_like(depth, dtype=np.float32)
+    across, down = np.abs(np.diff(depth, axis=1)), np.abs(np.diff(depth, axis=0))
+    jump[:, 1:] = np.maximum(jump[:, 1:], across)
+    jump[:, :-1] = np.maximum(jump[:, :-1], across)
+    jump[1:, :] = np.maximum(jump[1:, :], down)
+    jump[:-1, :] = np.maximum(jump[:-1, :], down)
+    return np.concatenate(
+        [
+            rgb.transpose(2, 0, 1).astype(np.float32) / 255.0,
+            np.clip((depth - median) / 0.1, -1, 1)[None].astype(np.float32),
+            np.clip(jump / JUMP, 0, 2)[None],
+            np.clip(height / 0.1, -1, 1)[None].astype(np.float32),
+            keep[None].astype(np.float32),
+        ]
+    )
+
+
+def interior_labels(seg: np.ndarray, keep: np.ndarray, height: np.ndarray, band: int = BAND) -> np.ndarray:
+    """(H, W) int8 training labels: 1 interior, 0 boundary, -1 outside the foreground (not scored).
+    A foreground pixel is boundary when a foreground pixel of another instance at least as high
+    above the table (``height``, m) lies within ``band`` px (the square around it): the band lies on
+    the lower object's side of a contact, so a knife on a plate, three pixels wide, keeps its
+    interior and the plate gives up the band (by depth, the plate in front of the knife is nearer
+    the camera: height, not depth, says what lies on what)."""
+    pad = band
+    ids = np.pad(np.where(keep, seg, -1), pad, constant_values=-1)
+    up = np.pad(height.astype(np.float32), pad, constant_values=-np.inf)
+    rows, cols = seg.shape
+    boundary = np.zeros_like(keep)
+    for dy in range(-band, band + 1):
+        for dx in range(-band, band + 1):
+            window = (slice(pad + dy, pad + dy + rows), slice(pad + dx, pad + dx + cols))
+            other = ids[window]
+            boundary |= (other >= 0) & (other != seg) & (up[window] >= height)
+    labels = np.where(boundary, 0, 1).astype(np.int8)
+    labels[~keep] = -1
+    return labels
+
+
+def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride=stride, padding=dilation, dilation=dilation), nn.ReLU(inplace=True)
+    )
+
+
+class Separator(nn.Module):
+    """A narrow U-Net: a full-resolution stem (``width`` channels), 1/2 (2 x), 1/4 (4 x, a dilated
+    block for context), decoded back to full resolution with skips; (B, CHANNELS, H, W) -> (B, 1, H, W)
+    interior logits. Narrow at full resolution, where most of the CPU goes."""
+
+    def __init__(self, width: int = 8):
+        super().__init__()
+        self.width = w = width
+        self.stem = _block(CHANNELS, w)
+        self.down1 = nn.Sequential(_block(w, 2 * w, stride=2), _block(2 * w, 2 * w))
+        self.down2 = nn.Sequential(_block(2 * w, 4 * w, stride=2), _block(4 * w, 4 * w, dilation=2))
+        self.up2 = _block(4 * w + 2 * w, 2 * w)
+        self.up1 = _block(2 * w + w, w)
+        self.head = nn.Conv2d(w, 1, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        s = self.stem(x)
+        d1 = self.down1(s)
+        d2 = self.down2(d1)
+        u2 = self.up2(torch.cat([F.interpolate(d2, size=d1.shape[-2:], mode="nearest"), d1], 1))
+        u1 = self.up1(torch.cat([F.interpolate(u2, size=s.shape[-2:], mode="nearest"), s], 1))
+        return self.head(u1)
+
+
+def grow_regions(interior: np.ndarray, keep: np.ndarray, height: np.ndarray) -> list[np.ndarray]:
+    """Candidate regions (H, W) bool from a predicted ``interior`` mask: its 4-connected components
+    of ``MIN_SEED`` pixels or more are seeds; the other ``keep`` pixels within ``GROW`` px of a seed
+    join it, the lowest seed (mean height) claiming first (the boundary band of a contact lies on
+    the lower object's side); regions of ``MIN_PIXELS`` or more are kept. ``height`` (H, W) metres
+    above the table. Computed on the foreground's box."""
+    import cv2
+
+    from scenegen.perception.retrieval.regions import MIN_PIXELS
+
+    box = _box(keep)
+    if box is None:
+        return []
+    inner, kept, high = interior[box], keep[box], height[box]
+    count, labels = cv2.connectedComponents((inner & kept).astype(np.uint8), connectivity=4)
+    if count <= 1:
+        return []
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    small = sizes < MIN_SEED
+    small[0] = False
+    labels[small[labels]] = 0
+    sums = np.bincount(labels.ravel(), weights=high.ravel(), minlength=count)
+    lowness = np.where(sizes > 0, -sums / np.maximum(sizes, 1), -np.inf)  # minus a seed's mean height
+    lowness[0] = -np.inf
+    # the lowest seed claims first: the band of a contact belongs to the lower object
+    reach = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * GROW + 1, 2 * GROW + 1))
+    for k in np.argsort(-lowness[1:], kind="stable") + 1:
+        if sizes[k] == 0 or small[k]:
+            continue
+        claimed = cv2.dilate((labels == k).astype(np.uint8), reach).astype(bool) & kept & (labels == 0)
+        labels[claimed] = k
+    sizes = np.bincount(labels.ravel(), minlength=count)
+    regions = []
+    for k in np.nonzero(sizes >= MIN_PIXELS)[0]:
+        if k == 0:
+            continue
+        region = np.zeros_like(keep)
+        region[box] = labels == k
+        regions.append(region)
+    return regions
+
+
+def _box(keep: np.ndarray) -> tuple[slice, slice] | None:
+    rows, cols = np.nonzero(keep)
+    if not len(rows):
+        return None
+    height, width = keep.shape
+    top, left = max(rows.min() - MARGIN, 0), max(cols.min() - MARGIN, 0)
+    bottom, right = min(rows.max() + MARGIN + 1, height), min(cols.max() + MARGIN + 1, width)
+    return slice(top, bottom), slice(left, right)
+
+
+class SeparatorRegions:
+    """The ``instances`` design's region split of one frame: the separator's interior map on the
+    foreground's bounding box, grown into regions (:func:`grow_regions`)."""
+
+    def __init__(self, model: Separator):
+        self.model = model.eval()
+
+    def interior(
+        self, rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray
+    ) -> np.ndarray:
+        """(H, W) bool predicted interior of one frame (False outside the foreground)."""
+        out = np.zeros_like(keep)
+        box = _box(keep)
+        if box is None:
+            return out
+        x = separator_input(rgb[box], depth[box], keep[box], height[box])
+        with torch.no_grad():
+            logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
+        out[box] = (logits > INTERIOR_LOGIT) & keep[box]
+        return out
+
+    def __call__(self, rgb, depth, robot, camera) -> list[np.ndarray]:
+        from scenegen.perception.retrieval.regions import foreground
+
+        keep, height = foreground(depth, robot, camera)
+        return grow_regions(self.interior(rgb, depth, keep, height), keep, height)
+
+
+def _patch_corner(pool: np.ndarray, shape: tuple[int, int], rng: np.random.Generator) -> tuple[int, int]:
+    """The top-left corner of a ``PATCH`` crop centred (as the frame's edges allow) on a pixel drawn
+    from ``pool`` (N, 2) rows and columns."""
+    height, width = shape
+    r, c = pool[rng.integers(len(pool))] if len(pool) else (height // 2, width // 2)
+    return int(np.clip(r - PATCH // 2, 0, height - PATCH)), int(np.clip(c - PATCH // 2, 0, width - PATCH))
+
+
+def contact_groups(seg: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
+    """A frame's boundary pixels, (N, 2) rows and columns, one group per instance they belong to
+    (one per contact with what lies on it, as a rule)."""
+    rows, cols = np.nonzero(labels == 0)
+    owner = seg[rows, cols]
+    return [np.stack([rows[owner == i], cols[owner == i]], 1) for i in np.unique(owner)]
+
+
+def train_separator(
+    inputs: Sequence[np.ndarray],
+    labels: Sequence[np.ndarray],
+    weights: np.ndarray,
+    contacts: Sequence[list[np.ndarray]],
+    steps: int = SEPARATOR_STEPS,
+    seed: int = 0,
+    lr: float = 3e-3,
+    width: int = 8,
+    batch: int = 8,
+    progress: bool = False,
+) -> tuple[Separator, dict]:
+    """A :class:`Separator` trained on frames' ``inputs`` (each (CHANNELS, H, W)) and ``labels``
+    (each (H, W) int8, :func:`interior_labels`). Half of a batch's crops are centred on any
+    foreground pixel of a frame drawn by its ``weights`` (its scene's weight in the mixture); the
+    other half on a boundary pixel: a frame with contacts drawn by weight, one of its
+    ``contacts`` (:func:`contact_groups`) with equal chance, a pixel of it (a knife's thin contact
+    with a can counts as much as a box's long one with a plate). Crops of ``PATCH`` px, flipped at
+    random, colours scaled (dim scenes are a rare case). Returns the model and a summary (losses,
+    CPU-seconds)."""
+    from tqdm import tqdm
+
+    torch.manual_seed(seed)
+    started = time.process_time()
+    rng = np.random.default_rng([seed, 43])
+    model = Separator(width)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    p = np.asarray(weights, float) / np.sum(weights)
+    anywhere = [np.argwhere(y >= 0) for y in labels]
+    touching = np.array([bool(c) for c in contacts])
+    q = np.where(touching, p, 0.0)
+    q = q / q.sum() if q.sum() > 0 else p
+    losses = []
+    for step in tqdm(range(steps), desc="separator", disable=not progress):
+        for group in optimiser.param_groups:
+            group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * step / steps))
+        frames = rng.choice(len(inputs), size=batch, p=p)
+        on_contact = rng.choice(len(inputs), size=batch, p=q)
+        xs, ys = [], []
+        for k in range(batch):
+            f = on_contact[k] if k % 2 == 0 and contacts[on_contact[k]] else frames[k]
+            groups = contacts[f]
+            pool = groups[rng.integers(len(groups))] if k % 2 == 0 and groups else anywhere[f]
+            r, c = _patch_corner(pool, labels[f].shape, rng)
+            x = inputs[f][:, r : r + PATCH, c : c + PATCH]
+            y = labels[f][r : r + PATCH, c : c + PATCH]
+            if rng.random() < 0.5:
+                x, y = x[:, :, ::-1], y[:, ::-1]
+            xs.append(np.ascontiguousarray(x, dtype=np.float32))
+            ys.append(np.ascontiguousarray(y))
+        x, y = torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys)).long()
+        x[:, :3] = (
+            x[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (batch, 1, 1, 1)).astype(np.float32))
+        ).clamp(0, 1)
+        scored = y >= 0
+        weight = torch.where(y == 0, BOUNDARY_WEIGHT, 1.0) * scored
+        logits = model(x)[:, 0]
+        loss = (
+            F.binary_cross_entropy_with_logits(logits, (y == 1).float(), reduction="none") * weight
+        ).sum() / weight.sum().clamp(min=1.0)
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(round(loss.item(), 6))
+    summary = {"steps": steps, "losses": losses, "cpu_seconds": round(time.process_time() - started, 1)}
+    return model.eval(), summary
+
+
+def separator_frames(scenes, frames) -> tuple[list, list, list, list[int]]:
+    """The separator's training frames of ``scenes``: per camera frame its input (float16, see
+    :func:`separator_input`), its labels (:func:`interior_labels`), its contacts
+    (:func:`contact_groups`) and its scene's position; the
+    robot's pixels and the instance ids come from the frames' segmentation (training only)."""
+    from scenegen.perception.retrieval.regions import foreground, robot_pixels
+
+    inputs, labels, contacts, scene_of = [], [], [], []
+    for i, (scene, f) in enumerate(zip(scenes, frames, strict=True)):
+        cameras = {c.name: c for c in scene.cameras}
+        robot = robot_pixels(f, scene)
+        for k, name in enumerate(f.cameras):
+            keep, height = foreground(f.depth[k], robot[k], cameras[name])
+            inputs.append(separator_input(f.rgb[k], f.depth[k], keep, height).astype(np.float16))
+            labels.append(interior_labels(f.seg[k], keep, height))
+            contacts.append(contact_groups(f.seg[k], labels[-1]))
+            scene_of.append(i)
+    return inputs, labels, contacts, scene_of
+
+
+def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
+    """The region split of an ``instances`` checkpoint folder (its separator.safetensors)."""
+    from safetensors.torch import load_file
+
+    from scenegen.core.files import checkpoint_error, int_field
+
+    spec = config.get("separator")
+    if not isinstance(spec, dict):
+        raise checkpoint_error(Path(folder) / "config.json", ValueError("no 'separator' object"), remedy)
+    model = Separator(int_field(spec, "width", folder, 2, 64))
+    try:
+        model.load_state_dict(load_file(str(Path(folder) / "separator.safetensors")))
+    except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
+        raise checkpoint_error(Path(folder) / "separator.safetensors", exc, remedy) from None
+    return SeparatorRegions(model)

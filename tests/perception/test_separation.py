@@ -1,0 +1,132 @@
+"""The instances design (issue 43): boundary labels from instance ids and heights, regions grown from
+predicted interiors, a real tiny training of both networks, its checkpoint read safely; the overlap
+rule of scoring and its version in the closed loop's keys."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenegen.env.scenes import batch_scenes, target_category
+from scenegen.perception.retrieval.evaluate import Prediction, image_metrics, perception_missed
+from scenegen.perception.retrieval.frames import scene_frames
+from scenegen.perception.retrieval.separation import grow_regions, interior_labels
+
+CATEGORIES = ["bottle", "bowl", "box", "can", "fork", "knife", "mug", "plate", "spoon"]
+
+
+def _knife_on_plate():
+    """A 40 x 60 frame: a plate (instance 1, 1 cm high) with a knife 3 px wide lying on it (instance
+    2, 1.3 cm), and a mug standing apart (instance 3), on the table (not foreground)."""
+    seg = np.zeros((40, 60), np.int32)
+    height = np.zeros((40, 60))
+    seg[5:35, 5:35], height[5:35, 5:35] = 1, 0.010
+    seg[10:30, 18:21], height[10:30, 18:21] = 2, 0.013
+    seg[10:20, 45:55], height[10:20, 45:55] = 3, 0.05
+    return seg, seg > 0, height
+
+
+def test_the_boundary_band_lies_on_the_lower_object_so_a_thin_object_keeps_its_interior():
+    seg, keep, height = _knife_on_plate()
+    labels = interior_labels(seg, keep, height, band=2)
+    assert (labels[~keep] == -1).all()
+    assert (labels[seg == 2] == 1).all()  # the knife, three pixels wide, is all interior
+    assert (labels[seg == 3] == 1).all()  # nothing touches the mug: no band
+    plate_band = (seg == 1) & (labels == 0)
+    rows, cols = np.nonzero(plate_band)
+    assert plate_band.sum() == (24 * 7 - 20 * 3) and cols.min() == 16 and cols.max() == 22
+    assert rows.min() == 8 and rows.max() == 31
+
+
+def test_regions_grown_from_the_true_interiors_are_the_instances():
+    seg, keep, height = _knife_on_plate()
+    interior = interior_labels(seg, keep, height) == 1
+    regions = grow_regions(interior, keep, height)
+    found = sorted((int(seg[r][0]), int(r.sum())) for r in regions)
+    assert found == [(1, int((seg == 1).sum())), (2, 60), (3, 100)]  # the band went back to the plate
+    for region in regions:
+        assert len(np.unique(seg[region])) == 1
+
+
+def test_the_overlap_rule_counts_a_mask_that_holds_the_base_as_missed():
+    seg, _, _ = _knife_on_plate()
+    ids = [1, 2, 3]
+    knife_and_plate = Prediction((seg == 1) | (seg == 2), 1.0)
+    merged = image_metrics(knife_and_plate, seg, 2, ids)
+    assert merged["hit"] and not merged["iou_hit"]  # its centre lies on the knife, IoU 60 / 900
+    own = image_metrics(Prediction(seg == 2, 1.0), seg, 2, ids)
+    assert own["iou_hit"] and own["iou"] == 1.0
+    unseen = np.zeros_like(seg)
+    assert image_metrics(Prediction(unseen > 0, 0.0), unseen, 2, ids)["iou_hit"]  # nothing where nothing is
+    assert not image_metrics(Prediction(seg == 3, 1.0), unseen, 2, ids)["iou_hit"]  # a false alarm
+    scored = {"hit": True, "hit_iou": False, "wrong_object": False}
+    assert not perception_missed(scored, 1) and perception_missed(scored, 2)
+    with pytest.raises(ValueError, match="perception rules 3"):
+        perception_missed(scored, 3)
+
+
+@pytest.fixture(scope="module")
+def tiny_head(demo_batch: Path, tmp_path_factory):
+    from scenegen.perception.retrieval.candidates import train_instances
+
+    scenes = batch_scenes(demo_batch)
+    frames = list(scene_frames(scenes, tmp_path_factory.mktemp("frames")))
+    out = tmp_path_factory.mktemp("heads") / "instances"
+    summary = train_instances(scenes, frames, CATEGORIES, out, steps=30, seed=0, separator_steps=40)
+    return scenes, frames, out, summary
+
+
+def test_a_tiny_instances_head_trains_both_networks_and_predicts(tiny_head, tmp_path: Path):
+    from scenegen.perception.retrieval.candidates import robot_pixels, train_instances
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+    scenes, frames, out, summary = tiny_head
+    losses = summary["separator"]["losses"]
+    assert len(losses) == 40 and np.mean(losses[-10:]) < np.mean(losses[:10])
+    assert summary["candidates"] > 0 and summary["losses"][-1] < summary["losses"][0]
+    config = json.loads((out / "config.json").read_text())
+    assert config["kind"] == "instances" and config["separator"]["width"] == 8
+    assert {p.name for p in out.iterdir()} == {"config.json", "model.safetensors", "separator.safetensors"}
+    perception = RetrievalPerception.load(out)
+    scene, f = scenes[0], frames[0]
+    predictions = perception.predict(f, scene.cameras, target_category(scene), robot_pixels(f, scene))
+    assert len(predictions) == 2 and all(p.mask.shape == (240, 320) for p in predictions)
+    again = train_instances(
+        scenes, frames, CATEGORIES, tmp_path / "again", steps=30, seed=0, separator_steps=40
+    )
+    assert again["losses"] == summary["losses"]  # a function of its seed
+    for name in ("separator.safetensors", "model.safetensors"):
+        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
+
+
+def test_an_instances_checkpoint_without_its_separator_is_a_one_line_error(tiny_head, tmp_path: Path):
+    from scenegen.core.files import CheckpointError
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+    _, _, out, _ = tiny_head
+    for name in ("config.json", "model.safetensors"):
+        (tmp_path / name).write_bytes((out / name).read_bytes())
+    with pytest.raises(CheckpointError, match="separator.safetensors: does not load") as caught:
+        RetrievalPerception.load(tmp_path)
+    assert len(str(caught.value).splitlines()) == 1
+
+
+def test_a_head_is_its_whole_folder_and_the_rules_version_keys_its_observations(tiny_head, tmp_path: Path):
+    from scenegen.experiment.sequences import NOMINAL, sight
+
+    _, _, out, _ = tiny_head
+    copy = tmp_path / "head"
+    copy.mkdir()
+    for item in out.iterdir():
+        (copy / item.name).write_bytes(item.read_bytes())
+    before = {rules: sight(copy, NOMINAL, rules) for rules in (1, 2)}
+    assert before[2].endswith("|perception2") and before[1] != before[2]
+    assert sight(copy, NOMINAL) == before[2] and sight(None, NOMINAL) == "oracle"
+    weights = bytearray((copy / "separator.safetensors").read_bytes())
+    weights[-1] ^= 1  # another separator, the same classifier
+    (copy / "separator.safetensors").write_bytes(bytes(weights))
+    assert sight(copy, NOMINAL, 2) != before[2]
+    assert sight(copy, NOMINAL, 1) == before[1]  # version 1 keys stay what they were
