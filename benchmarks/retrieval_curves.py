@@ -51,6 +51,11 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/retrieval_curves"))
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--smallest-first",
+        action="store_true",
+        help="train the smallest sets first (a second run beside one going largest first shares its heads)",
+    )
     args = parser.parse_args()
 
     started = time.monotonic()
@@ -60,6 +65,7 @@ def main() -> None:
     render_missing(list(wanted.values()), args.cache, args.workers, progress=True)
 
     jobs = curve_jobs(args.sizes, args.seeds, args.designs)
+    jobs = jobs[::-1] if args.smallest_first else jobs
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(args.workers, mp_context=context) as pool:
         futures = [pool.submit(run_job, job, args.heads, args.cache) for job in jobs]

@@ -49,8 +49,10 @@ def main() -> None:
     held = [s for s in load_scenes(REFERENCE, "heldout") if feasible(s)]
     panels = {
         "nominal": [s for s in held if s.tags.get("nominal") and unique(s)][: args.nominal],
-        # no layout of either panel side (version 1 and 2): the rare figures are held-out reporting
-        "rare_unique": outside_panels([s for s in held if not s.tags.get("nominal") and unique(s)]),
+        # no layout of either side of the version 2 panels: the rare figures are held-out reporting
+        "rare_unique": outside_panels(
+            [s for s in held if not s.tags.get("nominal") and unique(s)], version1=False
+        ),
     }
     everything = train + [s for p in panels.values() for s in p]
     list(scene_frames(everything, args.cache, args.workers, progress=True))  # render what is missing

@@ -83,6 +83,7 @@ def _add_panels(kinds) -> None:
 
 def _add_perception_gap(kinds, panels_file: Path) -> None:
     from scenegen.paths import ASSETS_DIR
+    from scenegen.perception.retrieval import DEFAULT_HEAD
 
     gap = kinds.add_parser(
         "perception-gap",
@@ -94,7 +95,12 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
         "gap, perception failures, the store's sharing rate and the CPU per episode). Resumable.",
     )
     gap.add_argument("--checkpoint", type=Path, default=ASSETS_DIR / "policy" / "baseline", help="policy")
-    gap.add_argument("--retrieval", type=Path, default=ASSETS_DIR / "retrieval" / "baseline", help="head")
+    gap.add_argument(
+        "--retrieval",
+        type=Path,
+        default=DEFAULT_HEAD,
+        help=f"head (default {DEFAULT_HEAD.relative_to(ASSETS_DIR.parent)})",
+    )
     gap.add_argument("--panels", type=Path, default=panels_file, help=f"panels file (default {panels_file})")
     gap.add_argument(
         "--side",

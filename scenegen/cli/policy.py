@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from scenegen.cli.common import add_backend_arguments, backend_from, fail, first_line
-from scenegen.paths import ASSETS_DIR
+from scenegen.perception.retrieval import DEFAULT_HEAD
 
 
 def add_commands(sub) -> None:
@@ -130,9 +130,10 @@ def _add_policy(sub) -> None:
     ev.add_argument("--labels", type=Path, help="expert labels of these scenes (for grasp-choice failures)")
     ev.add_argument(
         "--retrieval",
-        default=str(ASSETS_DIR / "retrieval" / "baseline"),
+        default=str(DEFAULT_HEAD),
         help="the retrieval head checkpoint the policy sees through, no simulator mask at decision time "
-        "(default assets/retrieval/baseline), or `oracle`: the simulator's instance masks, the ceiling",
+        "(default assets/retrieval/instances; issue 33's was assets/retrieval/baseline), or `oracle`: the "
+        "simulator's instance masks, the ceiling",
     )
     ev.add_argument("--out", type=Path, required=True, help="folder for the episodes and summary.json")
     ev.add_argument("--quiet", action="store_true", help="no progress bar")

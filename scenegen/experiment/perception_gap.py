@@ -66,6 +66,7 @@ def run_gap(
     perception rules' version ``rules`` (default: the current one); write and return the summary."""
     from tqdm import tqdm
 
+    from scenegen.core.files import folder_sha256
     from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
     from scenegen.policy.network import PrimitivePolicy
     from scenegen.policy.panels_v2 import panel_id
@@ -80,6 +81,7 @@ def run_gap(
     summary = {
         "checkpoint": str(checkpoint),
         "retrieval": str(retrieval),
+        "retrieval_sha256": folder_sha256(Path(retrieval)),  # the head: its whole folder
         "perception_rules": PERCEPTION_RULES if rules is None else rules,
         "layouts": len(scenes),
         "settings": {},

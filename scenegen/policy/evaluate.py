@@ -123,7 +123,7 @@ def evaluate(
     env = SceneEnv(
         scenes[0], cameras=[CAMERA, "side"], camera_size=CAMERA_SIZE, render_each_step=False, horizon=6000
     )
-    results, first_hits = [], []
+    results, first_hits, first_overlaps = [], [], []
     try:
         for i, scene in enumerate(tqdm(scenes, desc="episodes", disable=not progress)):
             episode = run_episode(
@@ -138,6 +138,7 @@ def evaluate(
             write_episode(out / episode.episode_id, episode)
             results.append((episode.success, episode.info["failure"], episode.info["out_of_time"]))
             first_hits.extend(score["hit"] for score in episode.info.get("perception", [])[:1])
+            first_overlaps.extend(score["hit_iou"] for score in episode.info.get("perception", [])[:1])
     finally:
         env.close()
     summary = {
@@ -148,7 +149,14 @@ def evaluate(
         "failures": dict(Counter(f for s, f, _ in results if not s)),
         "out_of_time": sum(late for s, _, late in results if not s),
     }
+    if perception is not None:
+        from scenegen.core.files import folder_sha256
+        from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
+
+        summary["perception_sha256"] = folder_sha256(Path(retrieval))  # the head: its whole folder
+        summary["perception_rules"] = PERCEPTION_RULES
     if first_hits:
         summary["first_decision_target_hit"] = round(sum(first_hits) / len(first_hits), 4)
+        summary["first_decision_overlap_hit"] = round(sum(first_overlaps) / len(first_overlaps), 4)
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

@@ -84,9 +84,11 @@ def panel_ids(sides=("test", "validation"), path: Path = PANELS_V2_FILE) -> set[
     return {i for side in sides for ids in panels[side].values() for i in ids}
 
 
-def outside_panels(scenes, sides=("test", "validation")) -> list:
-    """``scenes`` less every layout of the transfer experiment's panels: version 1's (by scene id)
-    and the given ``sides`` of version 2's (by ``panel_id``). What a command that reports held-out
-    figures, or labels outside the panels, keeps."""
-    version1, version2 = panel_scene_ids(), panel_ids(sides)
-    return [s for s in scenes if s.scene_id not in version1 and panel_id(s) not in version2]
+def outside_panels(scenes, sides=("test", "validation"), version1: bool = True) -> list:
+    """``scenes`` less every layout of the transfer experiment's panels: the given ``sides`` of
+    version 2's (by ``panel_id``) and, with ``version1``, version 1's (by scene id). What a command
+    that labels or evaluates a policy outside the panels keeps (both versions), and what a head's
+    held-out figures are computed on (version 2's: version 1's panels served the transfer experiment
+    of then, which looked through the oracle, not a head)."""
+    first, second = panel_scene_ids() if version1 else set(), panel_ids(sides)
+    return [s for s in scenes if s.scene_id not in first and panel_id(s) not in second]

@@ -77,7 +77,7 @@ def test_a_learned_evaluation_is_reused_whole_and_counts_its_cost(learned_run):
 
     _, policies, scenes, store, observations, records, cost = learned_run
     assert all(r["choices"] and len(r["plans"]) == len(r["choices"]) for r in records)
-    assert all(len(r["perception"]) == len(r["choices"]) and "hit" in r["perception"][0] for r in records)
+    assert all(len(r["perception"]) == len(r["choices"]) and "hit_iou" in r["perception"][0] for r in records)
     assert cost.attempts == sum(len(r["choices"]) for r in records) and cost.simulated >= 1
     assert cost.cpu["simulate"] > 0 and cost.cpu["observe"] > 0
     keys = set(store.entries)

@@ -26,7 +26,7 @@ from scenegen.policy.network import PrimitivePolicy
 
 ROOT = Path(__file__).resolve().parents[2]
 POLICY = ROOT / "assets" / "policy" / "baseline"
-RETRIEVAL = ROOT / "assets" / "retrieval" / "baseline"
+RETRIEVAL = ROOT / "assets" / "retrieval" / "instances"  # the default head (DEFAULT_HEAD)
 
 
 class Forbidden:
