@@ -162,7 +162,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
         return fail("--width must lie between 2 and 64")
     try:
         scenes = [s for source in args.data for s in _scenes(source, args.split, args.limit, args.shuffle)]
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, KeyError) as exc:  # KeyError: a table without a reference column
         return fail(first_line(exc))
     if not scenes:
         return fail(f"--data {' '.join(map(str, args.data))}: no feasible scene in split {args.split}")
@@ -218,10 +218,11 @@ def _mean(values) -> float:
 
 def held_out(scenes: list, select: str) -> tuple[list, str]:
     """The layouts of a table or batch that ``retrieval eval --select`` reports on, and what it says
-    it left out. Held-out figures never include a layout of the version 2 panels: rare and all
-    selections leave out both sides (their rare layouts are what transfer version 2 tests); a
-    nominal selection the test side (the validation side's common layouts are the head's tuning
-    set, docs/retrieval.md)."""
+    it left out. Held-out figures never include a layout of the version 2 test panels; rare and all
+    selections leave out the validation side too (its rare layouts are what transfer version 2
+    pilots on); a nominal selection keeps the validation side's common layouts, which are the
+    head's validation set of issue 33 (the first 300 unique-category nominal held-out layouts,
+    docs/retrieval.md)."""
     from scenegen.policy.panels import outside_panels
 
     if select != "all":

@@ -27,14 +27,16 @@ def _block(records: list[dict]) -> dict:
     low, high = wilson(k, n) if n else (None, None)
     perception = sum("perception" in r["attempt_failures"] for r in records)
     first = [r["perception"][0] for r in records if r["perception"] and r["perception"][0]]
-    overlap = [s["hit_iou"] for s in first if "hit_iou" in s]  # scored under version 2
+    overlap = [s["hit_iou"] for s in first if "hit_iou" in s]  # None unless every decision has it
     return {
         "episodes": n,
         "success": round(k / n, 4) if n else None,
         "interval": [round(low, 4), round(high, 4)] if n else None,
         "perception_failures": perception,
         "first_decision_hit": round(sum(s["hit"] for s in first) / len(first), 4) if first else None,
-        "first_decision_hit_iou": round(sum(overlap) / len(overlap), 4) if overlap else None,
+        "first_decision_hit_iou": (
+            round(sum(overlap) / len(overlap), 4) if overlap and len(overlap) == len(first) else None
+        ),
         "failures": dict(sorted(Counter(r["failure"] for r in records if not r["success"]).items())),
         "out_of_time": sum(r["out_of_time"] for r in records),
     }

@@ -199,6 +199,10 @@ def _grid(records: Sequence[dict], scored: str, tag: str) -> np.ndarray:
     return np.array([[float(r[i]["hit_iou"]) for i in keep] for r in rows])
 
 
+def _layouts(records: Sequence[dict], scored: str) -> list[str]:
+    return [r["layout"] for r in records[0]["rows"] if r["set"] == scored]
+
+
 def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict:
     """Per scored set, design, tag and size: the natural and rare-rich sets' overlap hit rates and
     the rare-rich set's lead, each with its 95 % bootstrap interval over seeds and layouts (the
@@ -229,6 +233,12 @@ def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict
                 for n in sizes:
                     if not all((design, s, n) in by for s in SETS):
                         continue
+                    if _layouts(by[(design, SETS[0], n)], scored) != _layouts(
+                        by[(design, SETS[1], n)], scored
+                    ):
+                        raise ValueError(
+                            f"{design} {n}: the two sets' heads were scored on different layouts"
+                        )
                     natural, rare = (_grid(by[(design, s, n)], scored, tag) for s in SETS)
                     if natural.shape[1] == 0:  # no scored layout holds the tag
                         continue

@@ -98,15 +98,16 @@ def sight(retrieval: Path | None, variant: Variant, rules: int | None = None) ->
     plan), or a retrieval head under ``variant``'s lighting, which its predictions, hence the plans,
     depend on, scored by the perception rules' version ``rules`` (default ``PERCEPTION_RULES``;
     perception/retrieval/evaluate.py). It keys observations, not sequences. A head is its whole
-    folder's sha256 (an ``instances`` head holds two weight files); version 1 keeps its keys of then
-    (model.safetensors alone), so figures made under it still read their stored observations."""
+    folder's sha256 (an ``instances`` head holds two weight files); a head of issue 33's designs
+    under version 1 keeps its key of then (model.safetensors alone), so figures made under it still
+    read their stored observations."""
     if retrieval is None:
         return "oracle"
     from scenegen.core.files import folder_sha256, sha256_file
     from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
 
     rules = PERCEPTION_RULES if rules is None else rules
-    if rules == 1:
+    if rules == 1 and not (Path(retrieval) / "separator.safetensors").exists():
         digest = sha256_file(Path(retrieval) / "model.safetensors")[:16]
         return f"retrieval:{digest}@{variant.name}:{variant.light_scale}"
     digest = folder_sha256(Path(retrieval))[:16]

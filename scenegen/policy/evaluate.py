@@ -101,10 +101,13 @@ def evaluate(
     from scenegen.env.robosuite_env import SceneEnv
 
     perception = None
+    head_sha256 = None
     if retrieval is not None and str(retrieval) != ORACLE:
+        from scenegen.core.files import folder_sha256
         from scenegen.perception.retrieval.perceive import RetrievalPerception
 
         perception = RetrievalPerception.load(retrieval)
+        head_sha256 = folder_sha256(Path(retrieval))  # the head as loaded: its whole folder
     policy = PrimitivePolicy.load(checkpoint)
     unknown = sorted(set(policy.primitives) - set(PRIMITIVES))
     if unknown:
@@ -150,10 +153,9 @@ def evaluate(
         "out_of_time": sum(late for s, _, late in results if not s),
     }
     if perception is not None:
-        from scenegen.core.files import folder_sha256
         from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
 
-        summary["perception_sha256"] = folder_sha256(Path(retrieval))  # the head: its whole folder
+        summary["perception_sha256"] = head_sha256
         summary["perception_rules"] = PERCEPTION_RULES
     if first_hits:
         summary["first_decision_target_hit"] = round(sum(first_hits) / len(first_hits), 4)

@@ -128,5 +128,16 @@ def test_a_head_is_its_whole_folder_and_the_rules_version_keys_its_observations(
     weights = bytearray((copy / "separator.safetensors").read_bytes())
     weights[-1] ^= 1  # another separator, the same classifier
     (copy / "separator.safetensors").write_bytes(bytes(weights))
-    assert sight(copy, NOMINAL, 2) != before[2]
-    assert sight(copy, NOMINAL, 1) == before[1]  # version 1 keys stay what they were
+    assert sight(copy, NOMINAL, 2) != before[2] and sight(copy, NOMINAL, 1) != before[1]
+    from scenegen.core.files import sha256_file
+    from scenegen.paths import ASSETS_DIR
+
+    old = ASSETS_DIR / "retrieval" / "baseline"  # issue 33's head keeps its version 1 key of then
+    assert sight(old, NOMINAL, 1) == f"retrieval:{sha256_file(old / 'model.safetensors')[:16]}@nominal:1.0"
+
+
+def test_the_cli_default_of_separator_steps_is_the_designs():
+    from scenegen.cli.retrieval import SEPARATOR_STEPS
+    from scenegen.perception.retrieval import separation
+
+    assert SEPARATOR_STEPS == separation.SEPARATOR_STEPS
