@@ -41,6 +41,43 @@ def test_the_boundary_band_lies_on_the_lower_object_so_a_thin_object_keeps_its_i
     assert rows.min() == 8 and rows.max() == 31
 
 
+def test_the_contact_channels_say_how_high_the_step_and_which_side_stands_proud():
+    from scenegen.perception.retrieval.separation import CHANNELS, STEP, separator_input
+
+    seg, keep, height = _knife_on_plate()
+    rgb = np.full((*seg.shape, 3), 128, np.uint8)
+    depth = 1.0 - height
+    x = separator_input(rgb, depth, keep, height)
+    assert x.shape == (CHANNELS, 40, 60) == (9, 40, 60)
+    assert np.array_equal(separator_input(rgb, depth, keep, height, 7), x[:7])  # the saved heads' input
+    step, proud = x[7], x[8]
+    knife, band = seg == 2, (seg == 1) & (interior_labels(seg, keep, height) == 0)
+    beside = band & ((np.roll(knife, 1, 1)) | np.roll(knife, -1, 1))  # plate pixels touching the knife
+    assert np.allclose(step[knife & np.roll(beside, 1, 1)], 0.003 / STEP)  # the knife's edge: 3 mm
+    assert np.allclose(step[beside], 0.003 / STEP)  # and the plate's pixel beside it
+    assert np.allclose(proud[knife], 0.003 / STEP)  # three pixels wide, all of it stands proud
+    assert np.allclose(proud[seg == 1], 0.0, atol=1e-5)  # the plate under it nowhere does
+    assert proud[~keep].max() == 0
+
+
+def test_a_separator_saved_before_the_contact_channels_loads_with_its_seven(tmp_path: Path):
+    from scenegen.core.files import CheckpointError
+    from scenegen.paths import ASSETS_DIR
+    from scenegen.perception.retrieval.candidates import CandidatePicker
+
+    old = ASSETS_DIR / "retrieval" / "instances_v1"  # issue 43's first head: no "channels" key
+    assert "channels" not in json.loads((old / "config.json").read_text())["separator"]
+    assert CandidatePicker(old).split.model.channels == 7
+    for name in ("model.safetensors", "separator.safetensors"):
+        (tmp_path / name).write_bytes((old / name).read_bytes())
+    config = json.loads((old / "config.json").read_text())
+    config["separator"]["channels"] = 8
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    with pytest.raises(CheckpointError, match="separator channels 8: 7 or 9") as caught:
+        CandidatePicker(tmp_path)
+    assert len(str(caught.value).splitlines()) == 1
+
+
 def test_regions_grown_from_the_true_interiors_are_the_instances():
     seg, keep, height = _knife_on_plate()
     interior = interior_labels(seg, keep, height) == 1
@@ -89,6 +126,7 @@ def test_a_tiny_instances_head_trains_both_networks_and_predicts(tiny_head, tmp_
     assert summary["candidates"] > 0 and summary["losses"][-1] < summary["losses"][0]
     config = json.loads((out / "config.json").read_text())
     assert config["kind"] == "instances" and config["separator"]["width"] == 8
+    assert config["separator"]["channels"] == 9
     assert {p.name for p in out.iterdir()} == {"config.json", "model.safetensors", "separator.safetensors"}
     perception = RetrievalPerception.load(out)
     scene, f = scenes[0], frames[0]

@@ -33,7 +33,7 @@ from scenegen.perception.retrieval.regions import (  # noqa: F401 - the design's
     foreground,
     robot_pixels,
 )
-from scenegen.perception.retrieval.separation import SEPARATOR_STEPS
+from scenegen.perception.retrieval.separation import CHANNELS, SEPARATOR_STEPS
 
 CROP = 32  # px: the classifier's input size
 FILL = 0.8  # of the crop's width the region's long axis fills
@@ -218,13 +218,15 @@ def train_instances(
     progress: bool = False,
     separator_steps: int = SEPARATOR_STEPS,
     width: int = 8,
+    channels: int = CHANNELS,
 ) -> dict:
     """The ``instances`` design: a :class:`Separator` trained on the scenes' instance labels, then
     the crop classifier trained on the regions it gives (as it will see them at prediction time);
     both saved in ``out`` (separator.safetensors, model.safetensors, config.json). ``frames``: the
     scenes' frames, a sequence (read twice). Scenes are drawn by the seed's mixture (``alpha``), as
-    the classifier draws them. Returns the classifier's summary with the separator's under
-    ``separator``."""
+    the classifier draws them. ``channels``: the separator's input planes (separation.py: 9; 7 as
+    separators were saved before the contact channels). Returns the classifier's summary with the
+    separator's under ``separator``."""
     from safetensors.torch import save_file
 
     from scenegen.env.mixture import scene_weights
@@ -232,7 +234,7 @@ def train_instances(
     from scenegen.perception.retrieval.train import default_recipe
 
     started = time.process_time()
-    inputs, labels, contacts, scene_of = separator_frames(scenes, frames)
+    inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels)
     weights = scene_weights(default_recipe(scenes, alpha), scenes)[scene_of]
     model, summary = train_separator(
         inputs, labels, weights, contacts, separator_steps, seed, width=width, progress=progress
@@ -242,7 +244,7 @@ def train_instances(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "separator.safetensors"))
-    design = {"kind": "instances", "separator": {"width": width, "training": summary}}
+    design = {"kind": "instances", "separator": {"width": width, "channels": channels, "training": summary}}
     result = train_classifier(
         scenes,
         frames,

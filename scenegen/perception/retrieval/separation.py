@@ -14,11 +14,15 @@ region within ``GROW`` px, the lowest one first; regions of
 ``MIN_PIXELS`` or more are the candidates, which the crop classifier then names. A region crosses
 from one object into another only where the network calls a whole band interior.
 
-Input (B, 7, H, W) float32: RGB in [0, 1], depth relative to the foreground's median (per 10 cm,
+Input (B, 9, H, W) float32: RGB in [0, 1], depth relative to the foreground's median (per 10 cm,
 clipped to [-1, 1]), the largest depth difference to a 4-neighbour (per ``JUMP``, clipped to [0,
 2]: a feature at full resolution, not a rule), height above the table (per 10 cm, clipped), the
-foreground mask. Output (B, 1, H, W) logits of "interior"; the loss counts foreground pixels only,
-boundary pixels weighted by ``BOUNDARY_WEIGHT``. The network runs on the foreground's bounding box.
+foreground mask, and two channels at the scale of a contact (per ``STEP``, clipped to [0, 2]): the
+largest height difference to a 4-neighbour, and the height above the lowest foreground pixel within
+``BAND`` px (which side of a step stands proud: a spoon 3 px wide on a plate is all proud, the
+plate's band beside it is not). Separators saved before those two have 7 channels. Output (B, 1,
+H, W) logits of "interior"; the loss counts foreground pixels only, boundary pixels weighted by
+``BOUNDARY_WEIGHT``. The network runs on the foreground's bounding box.
 """
 
 from __future__ import annotations
@@ -40,29 +44,46 @@ PATCH = 80  # px: square training crops
 INTERIOR_LOGIT = 0.0  # a pixel is interior where the network's logit exceeds this (probability 0.5)
 SEPARATOR_STEPS = 3000  # training steps of 8 crops (the instances design's default)
 JUMP = 0.04  # m: the scale of the depth-difference channel (the candidate design's split)
-CHANNELS = 7
+STEP = 0.01  # m: the scale of the two height channels at contacts (a spoon lies 6 mm proud of its plate)
+CHANNELS = 9  # separators saved before the contact channels have 7 (config "separator" "channels")
 MARGIN = 8  # px around the foreground's bounding box that the network sees at prediction time
 
 
-def separator_input(rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray) -> np.ndarray:
-    """(CHANNELS, H, W) float32 network input of one frame: ``rgb`` (H, W, 3) uint8, ``depth`` (H,
-    W) m, ``keep`` (H, W) bool foreground, ``height`` (H, W) m above the table top."""
+def _largest_step(values: np.ndarray) -> np.ndarray:
+    """(H, W) float32: the largest absolute difference of ``values`` to a 4-neighbour."""
+    step = np.zeros(values.shape, np.float32)
+    across, down = np.abs(np.diff(values, axis=1)), np.abs(np.diff(values, axis=0))
+    step[:, 1:] = np.maximum(step[:, 1:], across)
+    step[:, :-1] = np.maximum(step[:, :-1], across)
+    step[1:, :] = np.maximum(step[1:, :], down)
+    step[:-1, :] = np.maximum(step[:-1, :], down)
+    return step
+
+
+def separator_input(
+    rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray, channels: int = CHANNELS
+) -> np.ndarray:
+    """(channels, H, W) float32 network input of one frame: ``rgb`` (H, W, 3) uint8, ``depth`` (H,
+    W) m, ``keep`` (H, W) bool foreground, ``height`` (H, W) m above the table top. ``channels`` 7
+    leaves out the two contact channels (separators saved before them)."""
     median = float(np.median(depth[keep])) if keep.any() else 1.0
-    jump = np.zeros_like(depth, dtype=np.float32)
-    across, down = np.abs(np.diff(depth, axis=1)), np.abs(np.diff(depth, axis=0))
-    jump[:, 1:] = np.maximum(jump[:, 1:], across)
-    jump[:, :-1] = np.maximum(jump[:, :-1], across)
-    jump[1:, :] = np.maximum(jump[1:, :], down)
-    jump[:-1, :] = np.maximum(jump[:-1, :], down)
-    return np.concatenate(
-        [
-            rgb.transpose(2, 0, 1).astype(np.float32) / 255.0,
-            np.clip((depth - median) / 0.1, -1, 1)[None].astype(np.float32),
-            np.clip(jump / JUMP, 0, 2)[None],
-            np.clip(height / 0.1, -1, 1)[None].astype(np.float32),
-            keep[None].astype(np.float32),
-        ]
-    )
+    planes = [
+        rgb.transpose(2, 0, 1).astype(np.float32) / 255.0,
+        np.clip((depth - median) / 0.1, -1, 1)[None].astype(np.float32),
+        np.clip(_largest_step(depth) / JUMP, 0, 2)[None],
+        np.clip(height / 0.1, -1, 1)[None].astype(np.float32),
+        keep[None].astype(np.float32),
+    ]
+    if channels == CHANNELS:  # at contacts: how high the step, and which side stands proud
+        import cv2
+
+        lifted = np.where(keep, height, 0.0)
+        planes.append(np.clip(_largest_step(lifted) / STEP, 0, 2)[None])
+        window = np.ones((2 * BAND + 1, 2 * BAND + 1), np.uint8)
+        lowest = cv2.erode(np.where(keep, height, np.inf).astype(np.float32), window)
+        proud = np.where(keep, height - lowest, 0.0)
+        planes.append(np.clip(proud / STEP, 0, 2)[None].astype(np.float32))
+    return np.concatenate(planes)
 
 
 def interior_labels(seg: np.ndarray, keep: np.ndarray, height: np.ndarray, band: int = BAND) -> np.ndarray:
@@ -95,13 +116,14 @@ def _block(cin: int, cout: int, stride: int = 1, dilation: int = 1) -> nn.Sequen
 
 class Separator(nn.Module):
     """A narrow U-Net: a full-resolution stem (``width`` channels), 1/2 (2 x), 1/4 (4 x, a dilated
-    block for context), decoded back to full resolution with skips; (B, CHANNELS, H, W) -> (B, 1, H, W)
-    interior logits. Narrow at full resolution, where most of the CPU goes."""
+    block for context), decoded back to full resolution with skips; (B, channels, H, W) -> (B, 1, H,
+    W) interior logits. Narrow at full resolution, where most of the CPU goes."""
 
-    def __init__(self, width: int = 8):
+    def __init__(self, width: int = 8, channels: int = CHANNELS):
         super().__init__()
         self.width = w = width
-        self.stem = _block(CHANNELS, w)
+        self.channels = channels
+        self.stem = _block(channels, w)
         self.down1 = nn.Sequential(_block(w, 2 * w, stride=2), _block(2 * w, 2 * w))
         self.down2 = nn.Sequential(_block(2 * w, 4 * w, stride=2), _block(4 * w, 4 * w, dilation=2))
         self.up2 = _block(4 * w + 2 * w, 2 * w)
@@ -184,7 +206,7 @@ class SeparatorRegions:
         box = _box(keep)
         if box is None:
             return out
-        x = separator_input(rgb[box], depth[box], keep[box], height[box])
+        x = separator_input(rgb[box], depth[box], keep[box], height[box], self.model.channels)
         with torch.no_grad():
             logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
         out[box] = (logits > INTERIOR_LOGIT) & keep[box]
@@ -225,7 +247,7 @@ def train_separator(
     batch: int = 8,
     progress: bool = False,
 ) -> tuple[Separator, dict]:
-    """A :class:`Separator` trained on frames' ``inputs`` (each (CHANNELS, H, W)) and ``labels``
+    """A :class:`Separator` trained on frames' ``inputs`` (each (C, H, W)) and ``labels``
     (each (H, W) int8, :func:`interior_labels`). Half of a batch's crops are centred on any
     foreground pixel of a frame drawn by its ``weights`` (its scene's weight in the mixture); the
     other half on a boundary pixel: a frame with contacts drawn by weight, one of its
@@ -238,7 +260,7 @@ def train_separator(
     torch.manual_seed(seed)
     started = time.process_time()
     rng = np.random.default_rng([seed, 43])
-    model = Separator(width)
+    model = Separator(width, len(inputs[0]))
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     p = np.asarray(weights, float) / np.sum(weights)
     anywhere = [np.argwhere(y >= 0) for y in labels]
@@ -267,8 +289,7 @@ def train_separator(
         x[:, :3] = (
             x[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (batch, 1, 1, 1)).astype(np.float32))
         ).clamp(0, 1)
-        scored = y >= 0
-        weight = torch.where(y == 0, BOUNDARY_WEIGHT, 1.0) * scored
+        weight = torch.where(y == 0, BOUNDARY_WEIGHT, 1.0) * (y >= 0)
         logits = model(x)[:, 0]
         loss = (
             F.binary_cross_entropy_with_logits(logits, (y == 1).float(), reduction="none") * weight
@@ -281,7 +302,7 @@ def train_separator(
     return model.eval(), summary
 
 
-def separator_frames(scenes, frames) -> tuple[list, list, list, list[int]]:
+def separator_frames(scenes, frames, channels: int = CHANNELS) -> tuple[list, list, list, list[int]]:
     """The separator's training frames of ``scenes``: per camera frame its input (float16, see
     :func:`separator_input`), its labels (:func:`interior_labels`), its contacts
     (:func:`contact_groups`) and its scene's position; the
@@ -294,7 +315,7 @@ def separator_frames(scenes, frames) -> tuple[list, list, list, list[int]]:
         robot = robot_pixels(f, scene)
         for k, name in enumerate(f.cameras):
             keep, height = foreground(f.depth[k], robot[k], cameras[name])
-            inputs.append(separator_input(f.rgb[k], f.depth[k], keep, height).astype(np.float16))
+            inputs.append(separator_input(f.rgb[k], f.depth[k], keep, height, channels).astype(np.float16))
             labels.append(interior_labels(f.seg[k], keep, height))
             contacts.append(contact_groups(f.seg[k], labels[-1]))
             scene_of.append(i)
@@ -310,7 +331,11 @@ def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
     spec = config.get("separator")
     if not isinstance(spec, dict):
         raise checkpoint_error(Path(folder) / "config.json", ValueError("no 'separator' object"), remedy)
-    model = Separator(int_field(spec, "width", folder, 2, 64))
+    channels = spec.get("channels", 7)  # saved before the height-step channel: 7
+    if channels not in (7, CHANNELS):
+        problem = ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
+        raise checkpoint_error(Path(folder) / "config.json", problem, remedy)
+    model = Separator(int_field(spec, "width", folder, 2, 64), channels)
     try:
         model.load_state_dict(load_file(str(Path(folder) / "separator.safetensors")))
     except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
