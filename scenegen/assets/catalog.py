@@ -182,7 +182,7 @@ def load_catalogs(locations: Sequence[Path] = ()) -> Catalog:
     folder), in that order. No user catalog: the bundled catalog itself, sha256 and all. An asset
     name used twice is an error naming both catalogs."""
     bundled = load_catalog(ASSETS_DIR)
-    others = [load_catalog(Path(loc)) for loc in locations if catalog_file(loc).resolve() != _bundled_file()]
+    others = [load_catalog(Path(loc)) for loc in locations if not is_bundled(Path(loc))]
     if not others:
         return bundled
     assets, owner = list(bundled.assets), dict.fromkeys(bundled.by_name, bundled.files[0].path)
@@ -224,6 +224,11 @@ def active_catalog() -> Catalog:
 
 def _bundled_file() -> Path:
     return (ASSETS_DIR / CATALOG_FILE).resolve()
+
+
+def is_bundled(location: Path) -> bool:
+    """Whether ``location`` (a catalog file or its folder) is the bundled catalog."""
+    return catalog_file(location).resolve() == _bundled_file()
 
 
 def validate_asset_files(asset: Asset) -> None:

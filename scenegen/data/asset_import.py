@@ -20,7 +20,7 @@ import shutil
 import tempfile
 import time
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import trimesh
@@ -93,6 +93,7 @@ def add_asset(
     _check_names(mesh_path, name, options, target)
     folder = target.parent
     entries = _entries(target)
+    _check_folder(folder, target, entries, name)
     mesh = read_user_mesh(mesh_path, options.scale, options.units, options.up, options.texture)
     notes = list(mesh.notes)
     if options.collision == "hull" and mesh.collision != "convex_hull":
@@ -163,6 +164,28 @@ def _check_names(mesh_path: Path, name: str, options: ImportOptions, target: Pat
         taken |= {a.name: str(target) for a in load_catalog(target).assets}
     if name in taken:
         raise CatalogError(f"asset {name!r} is already in {taken[name]}; choose another with --name")
+
+
+def _check_folder(folder: Path, target: Path, entries: list[dict], name: str) -> None:
+    """A catalog needs a folder of its own: the audit of every batch made with it counts each file
+    there that the catalog does not reference as a violation. Refuses (one line) a folder holding
+    anything but the catalog file, its entries' files, import staging folders and the folder of
+    ``name`` (left by an import of it killed before its entry was written: the import replaces it)."""
+    if not folder.is_dir():
+        return
+    owned = {target.name, name}
+    for entry in entries:
+        parts = entry.get("parts") if isinstance(entry, dict) else None
+        files = [entry.get("mesh"), entry.get("texture"), *((parts or {}).get("files") or [])]
+        owned |= {PurePosixPath(f).parts[0] for f in files if isinstance(f, str) and PurePosixPath(f).parts}
+    staging = {p.name for p in folder.glob(f"{STAGING_PREFIX}*")}
+    others = sorted(p.name for p in folder.iterdir() if p.name not in owned | staging)
+    if others:
+        shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+        raise CatalogError(
+            f"{folder}: holds {shown}, which {target.name} does not own; a catalog needs a folder of its "
+            "own (e.g. --catalog my_objects/catalog.yaml in a new folder)"
+        )
 
 
 def _entries(target: Path) -> list[dict]:

@@ -263,6 +263,14 @@ def _catalog_paths(path: Path, catalogs) -> list[Path]:
         return []
     if not isinstance(catalogs, list | tuple) or not all(isinstance(c, str) for c in catalogs):
         raise ConfigError(f"{path}: catalogs: a list of catalog files, e.g. [user_assets/catalog.yaml]")
+    from scenegen.assets.catalog import is_bundled
+
+    for c in catalogs:
+        if is_bundled(Path(c)):
+            raise ConfigError(
+                f"{path}: catalogs: {c} is the bundled catalog, always in use; list only your own "
+                "catalogs (e.g. [user_assets/catalog.yaml]), or leave catalogs out"
+            )
     return [Path(c) for c in catalogs]
 
 

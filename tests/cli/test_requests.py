@@ -59,3 +59,27 @@ def test_unknown_proposer_kind_lists_the_valid_ones(tmp_path: Path, capsys: pyte
         ConfigError, match="--proposer magic: unknown kind; valid: procedural, targeted, diffusion"
     ):
         load_pipeline(REFERENCE, proposer="magic")
+
+
+@pytest.mark.parametrize("listed", ["assets/catalog.yaml", "assets"])
+def test_a_recipe_listing_the_bundled_catalog_is_refused_before_any_scene(
+    listed: str, tmp_path: Path, capsys: pytest.CaptureFixture, monkeypatch: pytest.MonkeyPatch
+):
+    """The bundled catalog is always in use; listed among a recipe's ``catalogs`` its folder would be
+    audited as a user catalog's (every other folder of assets/ a violation), so the recipe is refused."""
+    import yaml
+
+    from scenegen.paths import PROJECT_ROOT
+
+    monkeypatch.chdir(PROJECT_ROOT)
+    recipe = yaml.safe_load(Path(REFERENCE).read_text()) | {"catalogs": [listed]}
+    path = tmp_path / "mine.yaml"
+    path.write_text(yaml.safe_dump(recipe))
+    refused = f"catalogs: {listed} is the bundled catalog, always in use"
+    with pytest.raises(ConfigError, match=refused) as caught:
+        load_pipeline(path)
+    assert "leave catalogs out" in str(caught.value)
+    out = tmp_path / "never"
+    assert main(["generate", str(path), "--out", str(out), "--quiet"]) == USAGE_ERROR
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "always in use" in err[0] and not out.exists()

@@ -278,3 +278,22 @@ def test_a_round_object_is_upright_in_every_pose_and_never_toppled(tmp_path):
     assert not tin.orientation_free  # 5 x 5 x 8 cm: not about as long as wide
     ctx = TagContext(None, None, "lemon", ["lemon"], (), None, np.zeros(3), (), np.zeros((0, 3)), True)
     assert not toppled(ctx, TagSettings()).holds  # whatever way a round target has rolled
+
+
+def test_a_catalog_in_a_folder_that_holds_other_files_is_refused_with_one_line(tmp_path, capsys):
+    folder = tmp_path / "project"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("my notes\n")
+    (folder / "scans").mkdir()
+    mesh = write(tmp_path, "crate.obj", box_obj((4, 6, 10)))
+    catalog = folder / "catalog.yaml"
+    assert run_cli("add", str(mesh), "--category", "crate", "--units", "cm", "--catalog", str(catalog)) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.count("\n") == 0 and "notes.txt, scans" in error and "a folder of its own" in error
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt", "scans"]  # nothing written
+    own = seed_catalog(tmp_path)  # a catalog's own folder takes more assets; a stranger there is named
+    add_asset(mesh, ImportOptions("crate", units="cm"), own)
+    (own.parent / "stray.obj").write_text("v 0 0 0\n")
+    with pytest.raises(CatalogError, match=r"holds stray\.obj, which catalog\.yaml does not own"):
+        add_asset(write(tmp_path, "tin.obj", box_obj((4, 4, 8))), ImportOptions("tin", units="cm"), own)
+    assert [a.name for a in load_catalog(own).assets] == ["brick", "crate"]
