@@ -207,9 +207,11 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
     _unlisted_top_level(audit, where, batch)
     config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
     if config is not None:
-        from scenegen.assets.catalog import catalog_file
+        from scenegen.assets.catalog import catalog_file, is_bundled
 
         for location in config.catalogs:  # the user catalogs it was made with (paths: working directory)
+            if is_bundled(Path(location)):  # listed by a recipe of before it was refused: not a user's
+                continue
             audit_catalog_folder(audit, f"{where}: catalog {location}", catalog_file(Path(location)))
         _rederive(audit, where, source, batch, config)
 

@@ -93,7 +93,7 @@ def add_asset(
     _check_names(mesh_path, name, options, target)
     folder = target.parent
     entries = _entries(target)
-    _check_folder(folder, target, entries, name)
+    _check_folder(folder, target, entries)
     mesh = read_user_mesh(mesh_path, options.scale, options.units, options.up, options.texture)
     notes = list(mesh.notes)
     if options.collision == "hull" and mesh.collision != "convex_hull":
@@ -110,7 +110,7 @@ def add_asset(
             HEADER + yaml.safe_dump({"version": 1, "assets": [*entries, entry]}, sort_keys=False, width=100)
         )
         leftover = folder / name
-        if leftover.exists():  # moved in by an import killed before its catalog entry was written
+        if _left_by_an_import(leftover):  # moved in by an import killed before its entry was written
             shutil.rmtree(leftover)
             notes.append(f"removed {leftover}, left by an interrupted import")
         os.rename(stage / name, folder / name)
@@ -166,26 +166,40 @@ def _check_names(mesh_path: Path, name: str, options: ImportOptions, target: Pat
         raise CatalogError(f"asset {name!r} is already in {taken[name]}; choose another with --name")
 
 
-def _check_folder(folder: Path, target: Path, entries: list[dict], name: str) -> None:
+IMPORTED = frozenset({"visual.obj", "texture.png", "parts"})  # what an import moves into NAME/
+
+
+def _check_folder(folder: Path, target: Path, entries: list[dict]) -> None:
     """A catalog needs a folder of its own: the audit of every batch made with it counts each file
-    there that the catalog does not reference as a violation. Refuses (one line) a folder holding
-    anything but the catalog file, its entries' files, import staging folders and the folder of
-    ``name`` (left by an import of it killed before its entry was written: the import replaces it)."""
+    there that the catalog does not reference as a violation. Refuses (one line) a folder whose top
+    level holds anything but the catalog file, its entries' folders, import staging folders and
+    asset folders an import moved in before it was killed (holding only what an import writes:
+    the next import of that name replaces one)."""
     if not folder.is_dir():
         return
-    owned = {target.name, name}
+    owned = {target.name}
     for entry in entries:
         parts = entry.get("parts") if isinstance(entry, dict) else None
         files = [entry.get("mesh"), entry.get("texture"), *((parts or {}).get("files") or [])]
         owned |= {PurePosixPath(f).parts[0] for f in files if isinstance(f, str) and PurePosixPath(f).parts}
     staging = {p.name for p in folder.glob(f"{STAGING_PREFIX}*")}
-    others = sorted(p.name for p in folder.iterdir() if p.name not in owned | staging)
-    if others:
-        shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+    others = [p for p in folder.iterdir() if p.name not in owned | staging]
+    strangers = sorted(p.name for p in others if not _left_by_an_import(p))
+    if strangers:
+        shown = ", ".join(strangers[:3]) + (f" and {len(strangers) - 3} more" if len(strangers) > 3 else "")
         raise CatalogError(
             f"{folder}: holds {shown}, which {target.name} does not own; a catalog needs a folder of its "
             "own (e.g. --catalog my_objects/catalog.yaml in a new folder)"
         )
+
+
+def _left_by_an_import(path: Path) -> bool:
+    """Whether ``path`` is an asset folder an import moved in and was killed before listing: a
+    folder (not a link) holding its visual mesh and nothing but what an import writes."""
+    if not path.is_dir() or path.is_symlink():
+        return False
+    names = {p.name for p in path.iterdir()}
+    return "visual.obj" in names and names <= IMPORTED
 
 
 def _entries(target: Path) -> list[dict]:

@@ -243,6 +243,8 @@ def load_pipeline(
             return PipelineConfig.model_validate(raw)
     except CatalogError as exc:
         raise ConfigError(f"{path}: catalogs: {exc}") from None
+    except ConfigError:
+        raise  # names the recipe already
     except ValidationError as exc:
         raise ConfigError(_blame_request(_format_error(path, exc), path, request)) from None
     except ValueError as exc:

@@ -78,6 +78,7 @@ def test_a_recipe_listing_the_bundled_catalog_is_refused_before_any_scene(
     refused = f"catalogs: {listed} is the bundled catalog, always in use"
     with pytest.raises(ConfigError, match=refused) as caught:
         load_pipeline(path)
+    assert str(caught.value).startswith(f"{path}: catalogs: ") and str(caught.value).count(str(path)) == 1
     assert "leave catalogs out" in str(caught.value)
     out = tmp_path / "never"
     assert main(["generate", str(path), "--out", str(out), "--quiet"]) == USAGE_ERROR

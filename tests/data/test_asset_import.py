@@ -221,6 +221,8 @@ def test_an_import_stopped_between_its_two_renames_leaves_the_catalog_and_is_cle
     assert [a.name for a in load_catalog(catalog).assets] == ["brick"]
     monkeypatch.undo()
     monkeypatch.setenv("SCENEGEN_CACHE", str(tmp_path / "cache"))
+    tin = add_asset(write(tmp_path, "tin.obj", box_obj((4, 4, 8))), ImportOptions("tin", units="cm"), catalog)
+    assert not tin.notes or all("interrupted" not in n for n in tin.notes)  # crate's leftover: not a stranger
     result = add_asset(mesh, ImportOptions("crate", units="cm"), catalog)
     assert any("interrupted import" in note for note in result.notes)
 
@@ -297,3 +299,12 @@ def test_a_catalog_in_a_folder_that_holds_other_files_is_refused_with_one_line(t
     with pytest.raises(CatalogError, match=r"holds stray\.obj, which catalog\.yaml does not own"):
         add_asset(write(tmp_path, "tin.obj", box_obj((4, 4, 8))), ImportOptions("tin", units="cm"), own)
     assert [a.name for a in load_catalog(own).assets] == ["brick", "crate"]
+
+
+def test_a_folder_of_the_users_own_named_like_the_asset_is_never_removed(tmp_path):
+    folder = tmp_path / "project"
+    (folder / "lemon").mkdir(parents=True)
+    mesh = write(folder / "lemon", "lemon.obj", box_obj((5, 5, 7)))  # the user's own source files
+    with pytest.raises(CatalogError, match=r"holds lemon, which catalog\.yaml does not own"):
+        add_asset(mesh, ImportOptions("lemon", units="cm"), folder / "catalog.yaml")
+    assert mesh.is_file() and sorted(p.name for p in folder.iterdir()) == ["lemon"]

@@ -50,6 +50,8 @@ def test_the_contact_channels_say_how_high_the_step_and_which_side_stands_proud(
     x = separator_input(rgb, depth, keep, height)
     assert x.shape == (CHANNELS, 40, 60) == (9, 40, 60)
     assert np.array_equal(separator_input(rgb, depth, keep, height, 7), x[:7])  # the saved heads' input
+    with pytest.raises(ValueError, match="separator channels 8: 7 or 9"):
+        separator_input(rgb, depth, keep, height, 8)
     step, proud = x[7], x[8]
     knife, band = seg == 2, (seg == 1) & (interior_labels(seg, keep, height) == 0)
     beside = band & ((np.roll(knife, 1, 1)) | np.roll(knife, -1, 1))  # plate pixels touching the knife
@@ -71,11 +73,12 @@ def test_a_separator_saved_before_the_contact_channels_loads_with_its_seven(tmp_
     for name in ("model.safetensors", "separator.safetensors"):
         (tmp_path / name).write_bytes((old / name).read_bytes())
     config = json.loads((old / "config.json").read_text())
-    config["separator"]["channels"] = 8
-    (tmp_path / "config.json").write_text(json.dumps(config))
-    with pytest.raises(CheckpointError, match="separator channels 8: 7 or 9") as caught:
-        CandidatePicker(tmp_path)
-    assert len(str(caught.value).splitlines()) == 1
+    for wrong in (8, 9.0, True):
+        config["separator"]["channels"] = wrong
+        (tmp_path / "config.json").write_text(json.dumps(config))
+        with pytest.raises(CheckpointError, match=f"separator channels {wrong!r}: 7 or 9") as caught:
+            CandidatePicker(tmp_path)
+        assert len(str(caught.value).splitlines()) == 1
 
 
 def test_regions_grown_from_the_true_interiors_are_the_instances():

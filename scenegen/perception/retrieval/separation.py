@@ -66,6 +66,8 @@ def separator_input(
     """(channels, H, W) float32 network input of one frame: ``rgb`` (H, W, 3) uint8, ``depth`` (H,
     W) m, ``keep`` (H, W) bool foreground, ``height`` (H, W) m above the table top. ``channels`` 7
     leaves out the two contact channels (separators saved before them)."""
+    if channels not in (7, CHANNELS):
+        raise ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
     median = float(np.median(depth[keep])) if keep.any() else 1.0
     planes = [
         rgb.transpose(2, 0, 1).astype(np.float32) / 255.0,
@@ -331,8 +333,8 @@ def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
     spec = config.get("separator")
     if not isinstance(spec, dict):
         raise checkpoint_error(Path(folder) / "config.json", ValueError("no 'separator' object"), remedy)
-    channels = spec.get("channels", 7)  # saved before the height-step channel: 7
-    if channels not in (7, CHANNELS):
+    channels = spec.get("channels", 7)  # saved before the contact channels: 7
+    if type(channels) is not int or channels not in (7, CHANNELS):
         problem = ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
         raise checkpoint_error(Path(folder) / "config.json", problem, remedy)
     model = Separator(int_field(spec, "width", folder, 2, 64), channels)
