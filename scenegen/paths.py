@@ -8,6 +8,7 @@ from pathlib import Path
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 ASSETS_DIR = Path(os.environ.get("SCENEGEN_ASSETS", PROJECT_ROOT / "assets"))
 PIPELINES_DIR = PROJECT_ROOT / "pipelines"
+USER_CATALOG = Path("user_assets") / "catalog.yaml"  # `scenegen assets add`: default, in the working dir
 
 
 def cache_dir() -> Path:

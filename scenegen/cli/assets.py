@@ -73,7 +73,7 @@ def add_commands(sub) -> None:
 
 
 def _catalog_argument(parser, text: str) -> None:
-    from scenegen.data.asset_import import USER_CATALOG
+    from scenegen.paths import USER_CATALOG
 
     parser.add_argument("--catalog", type=Path, default=USER_CATALOG, help=text)
 
@@ -91,7 +91,7 @@ def _catalogs_argument(parser) -> None:
 
 def _catalogs(args):
     from scenegen.assets.catalog import load_catalogs
-    from scenegen.data.asset_import import USER_CATALOG
+    from scenegen.paths import USER_CATALOG
 
     if args.catalogs is None:
         args.catalogs = [USER_CATALOG] if USER_CATALOG.is_file() else []

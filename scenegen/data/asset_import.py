@@ -46,8 +46,8 @@ from scenegen.assets.measure import (
 )
 from scenegen.core.files import sha256_file
 from scenegen.data.asset_meshes import UNITS, MeshImportError, UserMesh, obj_text, read_user_mesh
+from scenegen.paths import USER_CATALOG  # noqa: F401 - the default catalog, re-exported
 
-USER_CATALOG = Path("user_assets") / CATALOG_FILE  # relative to the working directory
 NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")
 STAGING_PREFIX = ".staging-"
 DEFAULT_DENSITY = 500.0  # kg/m^3, when neither --mass nor --density is given (a note says so)
