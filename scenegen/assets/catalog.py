@@ -226,6 +226,22 @@ def _bundled_file() -> Path:
     return (ASSETS_DIR / CATALOG_FILE).resolve()
 
 
+def entry_files(entry) -> list[str] | None:
+    """The files a catalog entry as written (a mapping from catalog.yaml) references, relative to
+    its catalog's folder: its mesh first, then its convex parts and its texture; None when the
+    entry does not name them as texts."""
+    parts = entry.get("parts") if isinstance(entry, dict) else None
+    files = parts.get("files") if isinstance(parts, dict) else None
+    texture = entry.get("texture") if isinstance(entry, dict) else None
+    if (
+        not isinstance(files, list)
+        or not all(isinstance(f, str) for f in [entry.get("mesh"), *files])
+        or not isinstance(texture, str | None)
+    ):
+        return None
+    return [entry["mesh"], *files, *([texture] if texture is not None else [])]
+
+
 def is_bundled(location: Path) -> bool:
     """Whether ``location`` (a catalog file or its folder) is the bundled catalog."""
     return catalog_file(location).resolve() == _bundled_file()

@@ -367,19 +367,15 @@ def _catalog_references(audit, where: str, catalog_file: Path) -> dict[str, str 
     if not isinstance(assets, list) or not isinstance(data.get("version"), int):
         audit.violation(at, "schema", "not a catalog: a mapping with version and an assets list")
         return None
+    from scenegen.assets.catalog import entry_files
+
     references: dict[str, str | None] = {}
     for i, asset in enumerate(assets):
-        parts = asset.get("parts") if isinstance(asset, dict) else None
-        files = parts.get("files") if isinstance(parts, dict) else None
-        texture = asset.get("texture") if isinstance(asset, dict) else None
-        if (
-            not isinstance(files, list)
-            or not all(isinstance(f, str) for f in [asset.get("mesh"), asset.get("mesh_sha256"), *files])
-            or not isinstance(texture, str | None)
-        ):
+        files = entry_files(asset)
+        if files is None or not isinstance(asset.get("mesh_sha256"), str):
             audit.violation(f"{at}: assets[{i}]", "schema", "needs mesh, mesh_sha256 and parts.files (texts)")
             continue
-        for name in [*files, *([texture] if texture is not None else [])]:
+        for name in files[1:]:  # parts and texture; the mesh has its sha256
             references.setdefault(name, None)
         references[asset["mesh"]] = asset["mesh_sha256"]
     return references

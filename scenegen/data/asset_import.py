@@ -32,6 +32,7 @@ from scenegen.assets.catalog import (
     Asset,
     CatalogError,
     catalog_file,
+    entry_files,
     load_catalog,
     parts_key,
     validate_asset_files,
@@ -179,9 +180,7 @@ def _check_folder(folder: Path, target: Path, entries: list[dict]) -> None:
         return
     owned = {target.name}
     for entry in entries:
-        parts = entry.get("parts") if isinstance(entry, dict) else None
-        files = [entry.get("mesh"), entry.get("texture"), *((parts or {}).get("files") or [])]
-        owned |= {PurePosixPath(f).parts[0] for f in files if isinstance(f, str) and PurePosixPath(f).parts}
+        owned |= {PurePosixPath(f).parts[0] for f in entry_files(entry) or [] if PurePosixPath(f).parts}
     staging = {p.name for p in folder.glob(f"{STAGING_PREFIX}*")}
     others = [p for p in folder.iterdir() if p.name not in owned | staging]
     strangers = sorted(p.name for p in others if not _left_by_an_import(p))

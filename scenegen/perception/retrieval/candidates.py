@@ -233,8 +233,6 @@ def train_instances(
     from scenegen.perception.retrieval.separation import SeparatorRegions, separator_frames, train_separator
     from scenegen.perception.retrieval.train import default_recipe
 
-    if channels not in (7, CHANNELS):
-        raise ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
     started = time.process_time()
     inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels)
     weights = scene_weights(default_recipe(scenes, alpha), scenes)[scene_of]

@@ -60,14 +60,20 @@ def _largest_step(values: np.ndarray) -> np.ndarray:
     return step
 
 
+def check_channels(channels) -> None:
+    """ValueError (one line) unless ``channels`` is a separator's input planes: 7 (saved before
+    the contact channels) or ``CHANNELS``."""
+    if type(channels) is not int or channels not in (7, CHANNELS):
+        raise ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
+
+
 def separator_input(
     rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray, channels: int = CHANNELS
 ) -> np.ndarray:
     """(channels, H, W) float32 network input of one frame: ``rgb`` (H, W, 3) uint8, ``depth`` (H,
     W) m, ``keep`` (H, W) bool foreground, ``height`` (H, W) m above the table top. ``channels`` 7
     leaves out the two contact channels (separators saved before them)."""
-    if channels not in (7, CHANNELS):
-        raise ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
+    check_channels(channels)
     median = float(np.median(depth[keep])) if keep.any() else 1.0
     planes = [
         rgb.transpose(2, 0, 1).astype(np.float32) / 255.0,
@@ -334,9 +340,10 @@ def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
     if not isinstance(spec, dict):
         raise checkpoint_error(Path(folder) / "config.json", ValueError("no 'separator' object"), remedy)
     channels = spec.get("channels", 7)  # saved before the contact channels: 7
-    if type(channels) is not int or channels not in (7, CHANNELS):
-        problem = ValueError(f"separator channels {channels!r}: 7 or {CHANNELS}")
-        raise checkpoint_error(Path(folder) / "config.json", problem, remedy)
+    try:
+        check_channels(channels)
+    except ValueError as exc:
+        raise checkpoint_error(Path(folder) / "config.json", exc, remedy) from None
     model = Separator(int_field(spec, "width", folder, 2, 64), channels)
     try:
         model.load_state_dict(load_file(str(Path(folder) / "separator.safetensors")))
