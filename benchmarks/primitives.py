@@ -1,93 +1,251 @@
-"""Cost of the recovery task's pieces: CPU-seconds per primitive execution (by primitive) and per
-labelled scene (every primitive once), and the decision-point observation's render time, against one
-control step of the same environment (the baseline, measured in the same run).
+"""Cost of the recovery task's control loop, the code at a baseline commit against this checkout, in
+the same run, outcomes compared bit for bit.
 
-    .venv/bin/python benchmarks/primitives.py [--scenes 6] [--split train]
+    .venv/bin/python benchmarks/primitives.py [--scenes 4] [--episodes 12] [--repeats 2]
+        [--baseline 9430f21 | --no-baseline]
 
-Scenes: the first N nominal layouts of the training split of the reference set. CPU-seconds are this
-process's (time.process_time), wall seconds beside them. Prints a table and saves JSON.
+Two measurements, each in a fresh process per code version (the baseline's files extracted with
+`git archive` and run with this virtual environment), alternated ``--repeats`` times:
+- ``label``: a labelled scene, what `scenegen label` runs per scene: each of the five primitives from
+  a reset into the first ``--scenes`` nominal layouts of the reference set's training split, through
+  the oracle (``run_primitive``). CPU-seconds (time.process_time, every thread of the process) per
+  scene, control steps, and per attempt the outcome (success, lift, times, contacts, events) and the
+  full ``qpos`` at every decision point (the first observation and each re-observation) and at the end.
+- ``episode``: closed-loop episodes of the committed policy through the committed retrieval head on
+  the first ``--episodes`` layouts of the version 2 validation panels, fresh sequence and
+  observation stores (``evaluate_policies`` in this process), CPU-seconds per episode, and every
+  episode record and every stored sequence row (its ``qpos`` included).
+Outcomes must be equal between the versions (the script says so, and exits 1 if they differ). The
+ratio is this checkout's CPU over the baseline's, medians over the repeats. Prints a table and saves
+JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
 import time
-from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
+ROOT = Path(__file__).resolve().parents[1]
 
-from scenegen.core.files import load_rows
-from scenegen.env.robosuite_env import SceneEnv
-from scenegen.env.scenes import reference_scene
-from scenegen.manipulation.primitives import PRIMITIVES
-from scenegen.manipulation.rollout import run_primitive
-from scenegen.policy.labels import CAMERA_SIZE, CAMERAS, HORIZON
 
-REFERENCE = Path("assets/reference/reference.parquet")
+# ------------------------------------------------------------------------------ in the child
+
+
+def measure_label(scenes: int) -> dict:
+    import numpy as np
+
+    import scenegen.manipulation.rollout as rollout
+    from scenegen.core.files import load_rows
+    from scenegen.env.robosuite_env import SceneEnv
+    from scenegen.env.scenes import reference_scene
+    from scenegen.manipulation.primitives import PRIMITIVES
+    from scenegen.policy.labels import CAMERA_SIZE, CAMERAS, HORIZON
+
+    rows = [r for r in load_rows(ROOT / "assets/reference/reference.parquet", "train") if r["tag_nominal"]]
+    layouts = [reference_scene(r) for r in rows[:scenes]]
+    env = SceneEnv(
+        layouts[0], cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
+    )
+    seen: list[list[float]] = []
+    observe = rollout.observe
+
+    def recording(env, *args, **kwargs):  # every decision point's state, then the real observation
+        seen.append(env.sim.data._data.qpos.tolist())
+        return observe(env, *args, **kwargs)
+
+    rollout.observe = recording
+    env.reset_to(layouts[0])
+    rollout.run_primitive(env, "top_grasp")  # GL context, uploads, compiled kernels: outside the clock
+    cpu, steps, outcomes = [], [], []
+    for scene in layouts:
+        c0, n = time.process_time(), 0
+        for name in PRIMITIVES:
+            seen.clear()
+            env.reset_to(scene)  # each label job starts from a reset
+            outcome, params = rollout.run_primitive(env, name)
+            n += env.timestep
+            outcomes.append(
+                {
+                    "scene": scene.scene_id,
+                    "primitive": name,
+                    "outcome": {k: v for k, v in vars(outcome).items()},
+                    "steps": env.timestep,
+                    "decision_qpos": list(seen),
+                    "final_qpos": env.sim.data._data.qpos.tolist(),
+                    "params": json.loads(json.dumps(params, default=lambda x: np.asarray(x).tolist())),
+                }
+            )
+        cpu.append(time.process_time() - c0)
+        steps.append(n)
+    env.close()
+    return {"cpu_per_scene": cpu, "steps_per_scene": steps, "outcomes": outcomes}
+
+
+def measure_episode(episodes: int) -> dict:
+    from scenegen.experiment.closed_loop import Cost, evaluate_policies
+    from scenegen.experiment.sequences import ObservationStore, PathStore
+    from scenegen.paths import ASSETS_DIR
+    from scenegen.perception.retrieval import DEFAULT_HEAD
+    from scenegen.policy.network import PrimitivePolicy
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
+
+    panel = panel_scenes(load_panels_v2(ASSETS_DIR / "panels" / "v2" / "panels.json"), "validation")
+    unique = {}
+    for scenes in panel.values():
+        for s in scenes:
+            unique.setdefault(s.scene_id, s)
+    layouts = list(unique.values())[:episodes]
+    policy = PrimitivePolicy.load(ASSETS_DIR / "policy" / "baseline")
+    with tempfile.TemporaryDirectory() as tmp:
+        store, observations = (
+            PathStore(Path(tmp) / "paths.jsonl"),
+            ObservationStore(Path(tmp) / "observations"),
+        )
+        cost = Cost()
+        c0 = time.process_time()
+        records = evaluate_policies(
+            {"policy": policy}, layouts, store, observations, retrieval=DEFAULT_HEAD, cost=cost
+        )
+        cpu = time.process_time() - c0
+        rows = [json.loads(line) for line in (Path(tmp) / "paths.jsonl").read_text().splitlines()]
+    return {
+        "cpu_per_episode": cpu / len(layouts),
+        "cost": cost.summary(len(layouts)),
+        "outcomes": {"records": records, "rows": sorted(rows, key=lambda r: r["key"])},
+    }
+
+
+def measure(spec: dict) -> dict:
+    if spec["kind"] == "label":
+        return measure_label(spec["scenes"])
+    return measure_episode(spec["episodes"])
+
+
+# ------------------------------------------------------------------------------ the driver
+
+
+def baseline_tree(ref: str, into: Path) -> Path:
+    """The files of commit ``ref`` (git archive), extracted under ``into``."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref], capture_output=True, check=True).stdout
+    with tempfile.TemporaryFile() as f:
+        f.write(archive)
+        f.seek(0)
+        with tarfile.open(fileobj=f) as tar:
+            tar.extractall(into, filter="data")
+    return into
+
+
+def run_child(spec: dict, code: Path) -> dict:
+    """``measure(spec)`` in a fresh interpreter that imports scenegen from ``code``."""
+    env = {**os.environ, "PYTHONPATH": str(code), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    with tempfile.NamedTemporaryFile(suffix=".json") as out:
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--child",
+            json.dumps(spec),
+            "--child-out",
+            out.name,
+        ]
+        result = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True, timeout=3600)
+        if result.returncode != 0:
+            raise SystemExit(f"{spec}: exited {result.returncode}\n{result.stderr[-3000:]}")
+        return json.loads(Path(out.name).read_text())
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", type=int, default=6)
-    parser.add_argument("--split", default="train")
-    parser.add_argument("--json", type=Path, default=Path("benchmarks/results/primitives.json"))
-    args = parser.parse_args()
-
-    rows = [r for r in load_rows(REFERENCE, args.split) if r["tag_nominal"]][: args.scenes]
-    scenes = [reference_scene(r) for r in rows]
-    env = SceneEnv(
-        scenes[0], cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
+    parser.add_argument("--scenes", type=int, default=4, help="labelled scenes (default 4)")
+    parser.add_argument("--episodes", type=int, default=12, help="closed-loop episodes (default 12; 0: none)")
+    parser.add_argument("--repeats", type=int, default=2, help="runs of each version, alternated (default 2)")
+    parser.add_argument(
+        "--baseline", default="9430f21", help="commit whose code is the baseline (default 9430f21)"
     )
-    env.reset_to(scenes[0])
-    env.camera_observations()  # GL context and upload made
-    for _ in range(20):  # robosuite's numba warm-up
-        env.step(np.array([0, 0, 0, 0, 0, 0, -1.0]))
-    cpu, wall, steps = defaultdict(list), defaultdict(list), defaultdict(list)
-    render_cpu, render_wall, step_cpu = [], [], []
-    for scene in scenes:
-        for name in PRIMITIVES:
-            env.reset_to(scene)
-            c0, w0 = time.process_time(), time.perf_counter()
-            env.camera_observations()
-            render_cpu.append(time.process_time() - c0)
-            render_wall.append(time.perf_counter() - w0)
-            c0 = time.process_time()
-            env.step(np.array([0, 0, 0, 0, 0, 0, -1.0]))
-            step_cpu.append(time.process_time() - c0)
-            env.reset_to(scene)
-            c0, w0, t0 = time.process_time(), time.perf_counter(), env.timestep
-            run_primitive(env, name)
-            cpu[name].append(time.process_time() - c0)
-            wall[name].append(time.perf_counter() - w0)
-            steps[name].append(env.timestep - t0)
-    env.close()
-    step = float(np.median(step_cpu))
-    result = {
-        "scenes": len(scenes),
-        "cameras": f"{len(CAMERAS)} x {CAMERA_SIZE[0]}x{CAMERA_SIZE[1]}",
-        "control_step_cpu_s": round(step, 5),
-        "observation_render_cpu_s": round(float(np.median(render_cpu)), 4),
-        "observation_render_wall_s": round(float(np.median(render_wall)), 4),
-        "observation_over_step": round(float(np.median(render_cpu)) / step, 1),
-        "per_primitive": {
-            name: {
-                "cpu_s": round(float(np.mean(cpu[name])), 3),
-                "wall_s": round(float(np.mean(wall[name])), 3),
-                "control_steps": round(float(np.mean(steps[name])), 1),
-                "cpu_over_steps_x_step": round(float(np.mean(cpu[name])) / (np.mean(steps[name]) * step), 2),
+    parser.add_argument("--no-baseline", dest="baseline", action="store_const", const=None)
+    parser.add_argument("--json", type=Path, default=Path("benchmarks/results/primitives.json"))
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--child-out", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        Path(args.child_out).write_text(json.dumps(measure(json.loads(args.child))))
+        return
+
+    kinds = [{"kind": "label", "scenes": args.scenes}]
+    if args.episodes > 0:
+        kinds.append({"kind": "episode", "episodes": args.episodes})
+    results: dict[str, dict[str, list]] = {k["kind"]: {} for k in kinds}
+    with tempfile.TemporaryDirectory() as tmp:
+        code = {"current": ROOT}
+        if args.baseline:
+            code = {"baseline": baseline_tree(args.baseline, Path(tmp) / "baseline"), **code}
+        for repeat in range(args.repeats):
+            for spec in kinds:
+                for version in code if repeat % 2 == 0 else reversed(list(code)):
+                    print(f"{spec['kind']} {version} (run {repeat + 1}) ...", flush=True)
+                    results[spec["kind"]].setdefault(version, []).append(run_child(spec, code[version]))
+
+    summary, differ = {}, []
+    for kind, by_version in results.items():
+        per = "cpu_per_scene" if kind == "label" else "cpu_per_episode"
+        row = {}
+        for version, runs in by_version.items():
+            values = [statistics.mean(r[per]) if kind == "label" else r[per] for r in runs]
+            row[version] = {
+                "cpu_s": round(statistics.median(values), 3),
+                "runs": [round(v, 3) for v in values],
             }
-            for name in PRIMITIVES
+            if kind == "label":
+                row[version]["control_steps_per_scene"] = statistics.mean(runs[0]["steps_per_scene"])
+            else:
+                row[version]["cost"] = runs[0]["cost"]
+            reference = runs[0]["outcomes"]
+            if any(r["outcomes"] != reference for r in runs[1:]):
+                differ.append(f"{kind}: {version}'s repeats differ among themselves")
+        if "baseline" in row:
+            row["ratio"] = round(row["current"]["cpu_s"] / row["baseline"]["cpu_s"], 3)
+            same = by_version["current"][0]["outcomes"] == by_version["baseline"][0]["outcomes"]
+            row["outcomes_identical"] = same
+            if not same:
+                differ.append(f"{kind}: outcomes differ between the baseline and this checkout")
+        summary[kind] = row
+
+    unit = {"label": "CPU-s per labelled scene", "episode": "CPU-s per closed-loop episode"}
+    print(f"\n| measure | baseline ({args.baseline}) | this checkout | ratio | outcomes identical |")
+    print("|---|---|---|---|---|")
+    for kind, row in summary.items():
+        base = row.get("baseline", {}).get("cpu_s", "-")
+        print(
+            f"| {unit[kind]} | {base} | {row['current']['cpu_s']} | {row.get('ratio', '-')} "
+            f"| {row.get('outcomes_identical', '-')} |"
+        )
+    payload = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "processor": platform.processor(),
         },
-        "per_labelled_scene_cpu_s": round(sum(float(np.mean(v)) for v in cpu.values()), 2),
-        "machine": platform.processor() or platform.machine(),
+        "baseline": args.baseline,
+        "scenes": args.scenes,
+        "episodes": args.episodes,
+        "repeats": args.repeats,
+        "summary": summary,
+        "differences": differ,
     }
-    print(json.dumps(result, indent=1))
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps(result, indent=1) + "\n")
+    args.json.write_text(json.dumps(payload, indent=1) + "\n")
     print(f"-> {args.json}")
+    if differ:
+        print("\n".join(differ), file=sys.stderr)
+        raise SystemExit(1)
 
 
 if __name__ == "__main__":

@@ -289,7 +289,7 @@ def _unlisted_top_level(audit, where: str, batch: Path) -> None:
     against the index above) and the two views scenegen writes into a batch by default. Hidden entries
     count: a finished batch holds no temporary file (a resumed run removes a killed one's)."""
     from scenegen.analysis.contact_sheet import CONTACT_SHEET
-    from scenegen.data.coverage import CHART_NAME
+    from scenegen.data import CHART_NAME
 
     files = {*CHAINED_FILES, MANIFEST, TIMINGS, CONTACT_SHEET, CHART_NAME}
     for path in sorted(batch.iterdir()):

@@ -55,3 +55,29 @@ def backend_from(args):
     if backend.kind == "ray":
         import_ray()  # fail before any work when Ray is missing
     return backend
+
+
+def add_device_argument(parser) -> None:
+    """``--device auto|cpu|cuda`` of a training command (scenegen/devices.py)."""
+    from scenegen.devices import DEVICES
+
+    parser.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where the weights and batches live (default auto: CUDA when torch sees one, else the CPU, "
+        "what tests and CI use); random draws stay on the CPU, so a CPU run is byte-identical to one "
+        "made before this flag existed",
+    )
+
+
+def device_error(args) -> str | None:
+    """The one-line answer when ``--device`` names a device this machine lacks, else None (checked
+    before any work, so a missing GPU costs nothing)."""
+    from scenegen.devices import resolve_device
+
+    try:
+        resolve_device(args.device)
+    except ValueError as exc:
+        return str(exc)
+    return None

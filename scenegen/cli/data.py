@@ -43,7 +43,7 @@ def _add_reference(sub) -> None:
 
 
 def _add_coverage_and_import(sub) -> None:
-    from scenegen.data.coverage import CHART_NAME, SPARSE_COUNT  # numpy only: cheap to import for --help
+    from scenegen.data import CHART_NAME, SPARSE_COUNT  # not coverage.py: --help stays cheap
 
     cov = sub.add_parser(
         "coverage",

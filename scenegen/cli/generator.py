@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from scenegen.cli.common import fail
+from scenegen.cli.common import add_device_argument, device_error, fail
 
 
 def add_commands(sub) -> None:
@@ -38,6 +38,7 @@ def add_commands(sub) -> None:
     tr.add_argument("--layers", type=int, help="transformer layers (default 4)")
     tr.add_argument("--seed", type=int, help="seed (default 0)")
     tr.add_argument("--split", choices=("train", "heldout", "all"), help="rows to train on (default train)")
+    add_device_argument(tr)
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(run=train)
 
@@ -94,12 +95,14 @@ def train(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         err = exc.errors()[0]
         return fail(f"--{str(err['loc'][0]).replace('_', '-')}: {err['msg']}")
+    if (problem := device_error(args)) is not None:
+        return fail(problem)
     if not args.data.is_file():
         return fail(
             f"--data {args.data}: no such Parquet file (the bundled one: assets/reference/reference.parquet)"
         )
     try:
-        config = train(args.data, args.out, settings, progress=not args.quiet)
+        config = train(args.data, args.out, settings, progress=not args.quiet, device=args.device)
     except ValueError as exc:
         return fail(str(exc))
     print(

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import fail, first_line
+from scenegen.cli.common import add_device_argument, device_error, fail, first_line
 
 DEFAULT_CACHE = Path("runs/cache/frames")
 SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py)
@@ -70,6 +70,7 @@ def add_commands(sub) -> None:
     )
     tr.add_argument("--width", type=int, default=8, help="segmenter: channels of the first level (default 8)")
     tr.add_argument("--seed", type=int, default=0)
+    add_device_argument(tr)
     _common(tr)
     tr.set_defaults(run=retrieval_train)
 
@@ -160,6 +161,8 @@ def retrieval_train(args: argparse.Namespace) -> int:
         )
     if not 2 <= args.width <= 64:
         return fail("--width must lie between 2 and 64")
+    if (problem := device_error(args)) is not None:
+        return fail(problem)
     try:
         scenes = [s for source in args.data for s in _scenes(source, args.split, args.limit, args.shuffle)]
     except (OSError, ValueError, KeyError) as exc:  # KeyError: a table without a reference column
@@ -180,7 +183,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
     if args.design in ("candidates", "instances"):
         from scenegen.perception.retrieval.candidates import train_classifier, train_instances
 
-        common = {"alpha": args.alpha, "description": described}
+        common = {"alpha": args.alpha, "description": described, "device": args.device}
         if args.design == "instances":
             extra = {"progress": not args.quiet, "separator_steps": args.separator_steps}
             frames, train = list(frames), train_instances
@@ -203,6 +206,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
         width=args.width,
         description=described,
         progress=not args.quiet,
+        device=args.device,
     )
     print(
         f"{summary['scenes']} scenes ({summary['images']} images), {args.steps} steps: loss "

@@ -21,11 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from scenegen.core.files import SCENE_ID
+from scenegen.data import CHART_NAME, SPARSE_COUNT
 from scenegen.schema.condition import TAGS, TASKS
 
-SPARSE_COUNT = 20  # a cell with fewer scenes than this is sparse
 SPARSE_SHARE = 0.01  # ... and so is a cell with less than this share of all scenes
-CHART_NAME = "coverage.png"
 LOG_SCALE_RATIO = 20  # the chart's axis turns logarithmic when the tallest bar exceeds this x the threshold
 
 

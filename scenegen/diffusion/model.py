@@ -14,6 +14,7 @@ guidance and the sampler work with.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -72,6 +73,11 @@ class ConditionBatch:
             pose=torch.zeros_like(self.pose),
             pose_null=torch.ones_like(self.pose_null),
         )
+
+    def to(self, device) -> ConditionBatch:
+        """The same conditions on ``device`` (itself when they are there already)."""
+        moved = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return dataclasses.replace(self, **{k: None if v is None else v.to(device) for k, v in moved.items()})
 
     @staticmethod
     def cat(batches: list[ConditionBatch]) -> ConditionBatch:

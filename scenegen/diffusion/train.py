@@ -85,7 +85,7 @@ def _flat_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, torch.T
     for index, entry in state["state"].items():
         meta["keys"][str(index)] = sorted(entry)
         for key, value in entry.items():
-            tensors[f"optim.{index}.{key}"] = torch.as_tensor(value).clone()
+            tensors[f"optim.{index}.{key}"] = torch.as_tensor(value).detach().cpu().clone()
     return tensors, meta
 
 
@@ -109,13 +109,13 @@ def save_checkpoint(out: Path, model, ema, optimizer, generator, config: dict) -
 
     out.mkdir(parents=True, exist_ok=True)
     opt_tensors, opt_meta = _flat_optimizer(optimizer)
-    state = {f"model.{k}": v.contiguous() for k, v in model.state_dict().items()}
+    state = {f"model.{k}": v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     state.update(opt_tensors)
     state["rng"] = generator.get_state()
     _atomic(out / "train_state.safetensors", lambda p: save_file(state, str(p)))
     _atomic(
         out / "model.safetensors",
-        lambda p: save_file({k: v.contiguous() for k, v in ema.state_dict().items()}, str(p)),
+        lambda p: save_file({k: v.detach().cpu().contiguous() for k, v in ema.state_dict().items()}, str(p)),
     )
     _atomic(out / "loss.png", lambda p: p.write_bytes(loss_curve_png(config["losses"])))
     config = {**config, "optimizer": opt_meta}
@@ -220,14 +220,48 @@ def _resume(out: Path, config: dict, settings, model, ema, optimizer, generator)
     config.update(step=saved["step"], losses=saved["losses"], cpu_seconds=saved["cpu_seconds"])
 
 
+def _fresh_config(data_path: Path, settings, denoiser_config, encoding, catalog, rows: int, spread) -> dict:
+    """A new run's config.json: settings, encoding, the data's provenance, step 0."""
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "denoiser": denoiser_config.model_dump(),
+        "encoding": {
+            "version": ENCODING_VERSION,
+            "slots": encoding.slots,
+            "assets": list(encoding.assets),
+            "categories": list(catalog.categories),
+        },
+        "tasks": list(tasks()),
+        "tags": list(RARE_TAGS),
+        "train": settings.model_dump(),
+        "data": {"path": str(data_path), "sha256": sha256_file(data_path), "rows": rows},
+        "predicate_version": _data_predicate_version(data_path),
+        "spread": spread,
+        "catalog_sha256": catalog.sha256,
+        "step": 0,
+        "losses": [],
+        "cpu_seconds": 0.0,
+    }
+
+
 def train(
-    data_path: Path, out: Path, settings: TrainSettings, progress: bool = True, stop_after: int | None = None
+    data_path: Path,
+    out: Path,
+    settings: TrainSettings,
+    progress: bool = True,
+    stop_after: int | None = None,
+    device: str = "cpu",
 ) -> dict:
     """Train (or resume training) a denoiser on the layouts of ``data_path`` into checkpoint dir ``out``.
 
-    ``stop_after``: return after this many steps of this call (tests use it to interrupt a run)."""
+    ``stop_after``: return after this many steps of this call (tests use it to interrupt a run);
+    ``device``: ``cpu`` (default), ``cuda`` or ``auto`` (scenegen/devices.py): the weights and each
+    batch live there, every random draw stays on the CPU."""
     from tqdm import tqdm
 
+    from scenegen.devices import resolve_device
+
+    on = resolve_device(device)
     torch.manual_seed(settings.seed)
     catalog = data_catalog(data_path)
     encoding = SceneEncoding(catalog)
@@ -245,30 +279,13 @@ def train(
         heads=settings.heads,
         n_spread=0 if spread is None else len(spread["counts"]),
     )
-    model = Denoiser(denoiser_config)
+    model = Denoiser(denoiser_config).to(on)  # initialised on the CPU by the seed, then moved
     ema = copy.deepcopy(model).requires_grad_(False)
     optimizer = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     generator = torch.Generator().manual_seed(settings.seed)
-    config = {
-        "format": CHECKPOINT_FORMAT,
-        "denoiser": denoiser_config.model_dump(),
-        "encoding": {
-            "version": ENCODING_VERSION,
-            "slots": encoding.slots,
-            "assets": list(encoding.assets),
-            "categories": list(catalog.categories),
-        },
-        "tasks": list(tasks()),
-        "tags": list(RARE_TAGS),
-        "train": settings.model_dump(),
-        "data": {"path": str(data_path), "sha256": sha256_file(data_path), "rows": len(data)},
-        "predicate_version": _data_predicate_version(data_path),
-        "spread": spread,
-        "catalog_sha256": catalog.sha256,
-        "step": 0,
-        "losses": [],
-        "cpu_seconds": 0.0,
-    }
+    config = _fresh_config(data_path, settings, denoiser_config, encoding, catalog, len(data), spread)
+    if on.type != "cpu":  # a CPU run's config stays as it was before devices existed
+        config["device"] = on.type
     if (out / "config.json").is_file():
         _resume(out, config, settings, model, ema, optimizer, generator)
 
@@ -292,11 +309,11 @@ def train(
             settings.p_unspecified,
             settings.p_spread_null,
         )
-        x_o, x_s = data.objects[rows], data.scene[rows]
-        noise_o = torch.randn(x_o.shape, generator=generator)
-        noise_s = torch.randn(x_s.shape, generator=generator)
+        x_o, x_s = data.objects[rows].to(on), data.scene[rows].to(on)
+        noise_o = torch.randn(x_o.shape, generator=generator).to(on)
+        noise_s = torch.randn(x_s.shape, generator=generator).to(on)
         t = torch.randint(0, settings.train_timesteps, (len(rows),), generator=generator)
-        a = alphas[t]
+        a, t, c = alphas[t].to(on), t.to(on), c.to(on)
         xt_o = a.sqrt()[:, None, None] * x_o + (1 - a).sqrt()[:, None, None] * noise_o
         xt_s = a.sqrt()[:, None] * x_s + (1 - a).sqrt()[:, None] * noise_s
         v_o, v_s = model(xt_o, xt_s, t, c)  # v target: sqrt(a) noise - sqrt(1 - a) x_0

@@ -28,6 +28,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog, load_catalog, load_catalogs
 from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
+from scenegen.env.control import lean_control
 from scenegen.env.scenes import EnvScene, target_category
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
 from scenegen.sim import world
@@ -57,7 +58,9 @@ class SceneEnv(ManipulationEnv):
     ``scene``: the first scene (``reset_to`` switches); ``controller_config``: a robosuite composite
     controller config (default: ``load_composite_controller_config(controller="BASIC")``, OSC_POSE
     arm with delta actions + gripper); ``cameras``: scene camera names to observe (default none: no
-    rendering), at ``camera_size`` (width, height) pixels.
+    rendering), at ``camera_size`` (width, height) pixels; ``lean_control``: the default
+    controller's torques through :mod:`scenegen.env.control` (bit-identical, a fraction of the CPU;
+    False: robosuite's own path, what the benchmarks compare it with).
     """
 
     def __init__(
@@ -70,8 +73,12 @@ class SceneEnv(ManipulationEnv):
         catalog: Catalog | None = None,
         seed: int | None = None,
         render_each_step: bool = True,
+        lean_control: bool = True,
     ):
         self.scene = scene
+        self.lean_control = lean_control
+        self._control = None  # the LeanControl of this reset's robot, or None: robosuite's path
+        self._built_for: EnvScene | None = None  # the scene the loaded model was built for
         # the task's request ("retrieve the mug"): what a learned perception is told to look for
         self.requested_category = target_category(scene)
         self.render_each_step = render_each_step
@@ -110,12 +117,19 @@ class SceneEnv(ManipulationEnv):
             )
 
     def reset_to(self, scene: EnvScene) -> OrderedDict:
-        """Reset into ``scene``: a new model, objects settled, robot at the scene's initial pose."""
+        """Reset into ``scene``: objects settled, robot at the scene's initial pose. A new model is
+        built unless the model loaded was built for an equal scene: then robosuite's soft reset
+        (``mj_resetData`` on the same model, controllers made anew) gives the same state, bit for bit
+        (tests/env/test_control.py), without the compile."""
         self._check_cameras(scene)
         self.scene = scene
         # the task's request ("retrieve the mug"): what a learned perception is told to look for
         self.requested_category = target_category(scene)
-        return self.reset()
+        self.hard_reset = scene != self._built_for
+        try:
+            return self.reset()
+        finally:
+            self.hard_reset = True
 
     # ------------------------------------------------------------------ robosuite hooks
     def _load_model(self):
@@ -140,6 +154,7 @@ class SceneEnv(ManipulationEnv):
             base=self._robot_spec.copy(),
         )
         self.sim = MjSim(spec.compile())
+        self._built_for = scene
         self.sim.forward()
         self.initialize_time(self.control_freq)
 
@@ -160,6 +175,20 @@ class SceneEnv(ManipulationEnv):
         data.act[:] = 0.0
         data.ctrl[:] = 0.0
         self.sim.forward()
+        self._control = lean_control(robot) if self.lean_control else None
+
+    def _pre_action(self, action, policy_step=False):
+        if self._control is None:
+            return super()._pre_action(action, policy_step)
+        if policy_step and len(action) != 7:
+            raise ValueError(f"action of length {len(action)}: this environment takes 7 (arm 6, gripper 1)")
+        self._control.control(action, policy_step)
+
+    def _destroy_sim(self):
+        # robosuite's MjSim.free() ends in gc.collect(): a full collection per reset, 0.16 s in a
+        # process that holds torch and a head (measured in a closed-loop evaluation); the model and
+        # data are freed when their last reference goes, and the collector runs on its own schedule
+        self.sim = None
 
     def _setup_references(self):
         super()._setup_references()
@@ -173,23 +202,31 @@ class SceneEnv(ManipulationEnv):
         obs["target_id"] = np.array([self.scene.target_id], dtype=np.int32)
         return obs
 
-    def camera_observations(self, segmentation: bool = True) -> dict[str, np.ndarray]:
+    def camera_observations(self, segmentation: bool = True, image: bool = True) -> dict[str, np.ndarray]:
         """``<cam>_image``, ``<cam>_depth``, ``<cam>_segmentation`` of each observed camera, now.
 
         ``segmentation=False``: what a robot has without the simulator's instance masks: no
         ``<cam>_segmentation``, and instead ``<cam>_robot_mask`` (H, W, 1) bool, the robot's own
         pixels, as a self-filter computes them from its known geometry and joint angles (here the
-        renderer's robot instance: the visible pixels of the robot's own meshes)."""
+        renderer's robot instance: the visible pixels of the robot's own meshes). ``image=False``:
+        no ``<cam>_image`` (its colour pass is not drawn), for a caller that reads depth and masks
+        only."""
         if self._renderer is None:  # one GL context per environment, made on first use
             self._renderer = SceneRenderer()
         model, data = self.sim.model._model, self.sim.data._data
         frames = self._renderer.render(
-            model, data, self.cameras, self.scene.segmentation, [self.camera_size] * len(self.cameras)
+            model,
+            data,
+            self.cameras,
+            self.scene.segmentation,
+            [self.camera_size] * len(self.cameras),
+            rgb=image,
         )
         out = {}
         robot = self.scene.segmentation["robot"]
         for name, f in zip(self.cameras, frames, strict=True):
-            out[f"{name}_image"] = f.rgb
+            if image:
+                out[f"{name}_image"] = f.rgb
             out[f"{name}_depth"] = f.depth[..., None]
             if segmentation:
                 out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]

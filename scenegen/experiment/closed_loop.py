@@ -124,15 +124,15 @@ def simulate(
         # integration: keep that state
         seen = data.qpos.copy()
         mujoco.mj_integratePos(env.sim.model._model, seen, data.qvel, -env.sim.model._model.opt.timestep)
-        obs, view = look(env, perception)
+        obs, view = look(env, perception, image=False)
         plan = None if view is None else plan_top_grasp(view)
         again.append({"qpos": seen.tolist(), "plan": plan_digest(plan)})
         return obs, view
 
     for k, name in enumerate(prefix):
         again.clear()
-        outcome, params = run_primitive(
-            env, name, recorder, episode=episode, perception=perception, look=look_again
+        outcome, params = run_primitive(  # the record is read for its trace: no colour images
+            env, name, recorder, episode=episode, perception=perception, look=look_again, images=False
         )
         decision = decision_token(name, params)
         regrasp = again[0] if again else None

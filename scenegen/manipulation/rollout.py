@@ -17,6 +17,7 @@ def run_primitive(
     perception=None,
     observed: tuple | None = None,
     look=None,
+    images: bool | None = None,
 ) -> tuple[RetrieveOutcome, dict | None]:
     """Observe (``rgbd``, or the ``state`` ablation), plan ``name`` and execute it from the
     environment's current state; the outcome as the simulator measured it and the planned parameters
@@ -31,11 +32,13 @@ def run_primitive(
             f"the episode records {recorder.episode.observation_kind!r}"
         )
     start, settled_z = episode if episode is not None else (None, None)
+    # the oracle's planner reads depth and masks: its colour pass is drawn only for a record
+    image = (recorder is not None) if images is None else images
     monitor = RetrieveMonitor(env, start=start, settled_z=settled_z)
     if observed is not None:
         obs, view = observed
     else:
-        obs, view = observe(env, perception) if observation_kind == "rgbd" else observe_state(env)
+        obs, view = observe(env, perception, image) if observation_kind == "rgbd" else observe_state(env)
     if recorder is not None:
         recorder.decide(obs, {"primitive": name, "observation_kind": observation_kind})
     if view is None:
@@ -51,5 +54,5 @@ def run_primitive(
             env.step(action)
         monitor.update()
 
-    chosen.execute(env, params, step=step, look=look or (lambda: observe(env, perception)))
+    chosen.execute(env, params, step=step, look=look or (lambda: observe(env, perception, image)))
     return monitor.outcome, params

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 LIFT_HEIGHT = 0.05  # m above the settled height
 HOLD_TIME = 1.0  # s the lift must last
 # s of simulated time for one episode, every attempt counted from the episode's start. 45 s: the
@@ -18,6 +20,7 @@ HOLD_TIME = 1.0  # s the lift must last
 # 13,390 rows of assets/transfer/labels.parquet; version 1 of the transfer experiment had 30 s, which
 # cut most pull_out successes, and did not enforce it on a success (docs/transfer.md).
 TIME_LIMIT = 45.0
+NONE, TARGET, FURNITURE, OTHER = 0, 1, 2, 3  # what a body the robot touches is
 
 
 def feasible(scene) -> bool:
@@ -85,6 +88,7 @@ class RetrieveMonitor:
         self.settled_z = float(env.target_pose()[0][2]) if settled_z is None else float(settled_z)
         self.start = float(env.sim.data._data.time) if start is None else float(start)
         self._lifted_since: float | None = None
+        self._body_kinds: tuple[np.ndarray, np.ndarray] | None = None
         self.outcome = RetrieveOutcome()
 
     def update(self) -> RetrieveOutcome:
@@ -106,22 +110,47 @@ class RetrieveMonitor:
         return out
 
     def _robot_contacts(self) -> tuple[bool, bool, bool]:
-        """Whether the robot touches the target, a piece of furniture, another object, now."""
-        model, data = self.env.sim.model._model, self.env.sim.data._data
-        target = self.env.target_body_id
-        furniture = {f.name for f in self.env.scene.furniture}
-        objects = {o.name for o in self.env.scene.objects}
-        touches_target = touches_furniture = touches_other = False
-        for c in data.contact[: data.ncon]:
-            names = (model.body(model.geom_bodyid[c.geom1]).name, model.body(model.geom_bodyid[c.geom2]).name)
-            robot = [n.startswith(("robot0_", "gripper0_")) for n in names]
-            if not any(robot):
-                continue
-            other = names[1] if robot[0] else names[0]
-            touches_target |= model.body(other).id == target
-            touches_furniture |= other in furniture
-            touches_other |= other in objects and model.body(other).id != target
-        return touches_target, touches_furniture, touches_other
+        """Whether the robot touches the target, a piece of furniture, another object, now: each
+        contact with a robot body on one side, classified by the body on the other (a contact
+        between two robot bodies counts as neither)."""
+        data = self.env.sim.data._data
+        n = data.ncon
+        if n == 0:
+            return False, False, False
+        robot, kind = self._bodies()
+        b1 = self._geom_body[data.contact.geom1[:n]]
+        b2 = self._geom_body[data.contact.geom2[:n]]
+        r1 = robot[b1]
+        touching = r1 | robot[b2]
+        if not touching.any():
+            return False, False, False
+        kinds = kind[np.where(r1, b2, b1)[touching]]
+        return bool((kinds == TARGET).any()), bool((kinds == FURNITURE).any()), bool((kinds == OTHER).any())
+
+    def _bodies(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per body of this model: whether it is the robot's, and its kind (target, furniture,
+        another object, or none of these), read once per monitor."""
+        if self._body_kinds is None:
+            model = self.env.sim.model._model
+            furniture = {f.name for f in self.env.scene.furniture}
+            objects = {o.name for o in self.env.scene.objects}
+            names = [model.body(b).name for b in range(model.nbody)]
+            robot = np.array([n.startswith(("robot0_", "gripper0_")) for n in names])
+            kind = np.array(
+                [
+                    TARGET
+                    if b == self.env.target_body_id
+                    else FURNITURE
+                    if n in furniture
+                    else OTHER
+                    if n in objects
+                    else NONE
+                    for b, n in enumerate(names)
+                ]
+            )
+            self._geom_body = model.geom_bodyid.copy()
+            self._body_kinds = (robot, kind)
+        return self._body_kinds
 
     @property
     def timed_out(self) -> bool:

@@ -42,17 +42,18 @@ BACKGROUND = ("arena", "table", "robot")
 KINDS = ("rgbd", "state")
 
 
-def observe(env, perception=None) -> tuple[dict, TargetView | None]:
+def observe(env, perception=None, image: bool = True) -> tuple[dict, TargetView | None]:
     """The camera observation now and what a planner sees in it (None: the target is not seen).
     ``perception``: a learned target finder (``target_masks(obs, cameras, category, parameters)``:
     the frames, the cameras' poses and intrinsics, which a robot knows, and the requested category,
     the environment's ``requested_category``, set with the task at reset), or None for the oracle's
     instance masks. With one, the observation holds no segmentation: per camera the
     image, depth, the robot's own pixels (``<cam>_robot_mask``) and the predicted target
-    (``<cam>_predicted_target``)."""
+    (``<cam>_predicted_target``). ``image=False`` (the oracle only, whose planner reads depth and
+    masks): no ``<cam>_image`` in the observation, its colour pass not drawn."""
     if perception is not None:
         return _observe_learned(env, perception)
-    obs = env.camera_observations()
+    obs = env.camera_observations(image=image)
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
     background = {scene.segmentation[name] for name in BACKGROUND}

@@ -96,9 +96,10 @@ def _geom_instance(model, ids: dict[str, int]) -> np.ndarray:
 
 @dataclass
 class Frames:
-    """The images of one camera: rgb (H, W, 3) uint8, depth (H, W) float32 metres (0 = none), seg (H, W)."""
+    """The images of one camera: rgb (H, W, 3) uint8 (None when not drawn), depth (H, W) float32
+    metres (0 = none), seg (H, W)."""
 
-    rgb: np.ndarray
+    rgb: np.ndarray | None
     depth: np.ndarray
     seg: np.ndarray
 
@@ -139,11 +140,14 @@ class SceneRenderer:
         ids: dict[str, int],
         size: Sequence[tuple[int, int]],
         robot_detail: float = 1.0,
+        rgb: bool = True,
     ):
         """Frames for each camera name at its (width, height); ``data`` must be forwarded.
 
         ``robot_detail`` < 1 draws the robot's visual meshes decimated to that share of their
-        triangles (render/robot_mesh.py; the model itself is not changed)."""
+        triangles (render/robot_mesh.py; the model itself is not changed); ``rgb=False`` skips the
+        colour pass (multisampled, shadowed: the dearer one) for a caller that reads only depth and
+        segmentation, which come from their own pass either way."""
         mj = self._mujoco
         con, seg_con = self.prepare(model, robot_detail)
         scene = mj.MjvScene(model, maxgeom=max(1000, 2 * model.ngeom))
@@ -155,7 +159,7 @@ class SceneRenderer:
         option.sitegroup[:] = 0
         instance = _geom_instance(model, ids)
         return [
-            self._camera(model, data, (con, seg_con), scene, option, name, wh, instance)
+            self._camera(model, data, (con, seg_con), scene, option, name, wh, instance, rgb)
             for name, wh in zip(cameras, size, strict=True)
         ]
 
@@ -206,7 +210,7 @@ class SceneRenderer:
         con.readDepthMap = mj.mjtDepthMap.mjDEPTH_ZEROFAR
         return con
 
-    def _camera(self, model, data, contexts, scene, option, name, wh, instance) -> Frames:
+    def _camera(self, model, data, contexts, scene, option, name, wh, instance, draw_rgb=True) -> Frames:
         mj = self._mujoco
         con, seg_con = contexts
         width, height = wh
@@ -216,11 +220,12 @@ class SceneRenderer:
         camera.fixedcamid = model.camera(name).id
         mj.mjv_updateScene(model, data, option, None, camera, mj.mjtCatBit.mjCAT_ALL, scene)
 
-        rgb = np.empty((height, width, 3), np.uint8)
+        rgb = np.empty((height, width, 3), np.uint8) if draw_rgb else None
         depth_buffer = np.empty((height, width), np.float32)
-        mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, con)  # binds this context's framebuffer
-        mj.mjr_render(rect, scene, con)
-        mj.mjr_readPixels(rgb, None, rect, con)
+        if draw_rgb:
+            mj.mjr_setBuffer(mj.mjtFramebuffer.mjFB_OFFSCREEN, con)  # binds this context's framebuffer
+            mj.mjr_render(rect, scene, con)
+            mj.mjr_readPixels(rgb, None, rect, con)
 
         # Depth is read from the segmentation pass, which is not anti-aliased: read from the RGB pass it
         # came from one multisample, up to 0.4 px off the pixel centre (60 mm at object edges, measured).
@@ -249,7 +254,8 @@ class SceneRenderer:
         # along the optical axis.
         depth = near * far / (near + depth_buffer.astype(np.float64) * (far - near))
         depth[(seg == 0) | (depth_buffer <= 0.0)] = 0.0
-        return Frames(np.flipud(rgb).copy(), np.flipud(depth).astype(np.float32), np.flipud(seg).copy())
+        image = None if rgb is None else np.flipud(rgb).copy()
+        return Frames(image, np.flipud(depth).astype(np.float32), np.flipud(seg).copy())
 
 
 def encode_png(image: np.ndarray) -> bytes:

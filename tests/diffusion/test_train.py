@@ -183,3 +183,28 @@ def test_a_checkpoint_from_before_a_setting_was_added_resumes(trained: Path, tmp
     ) as err:
         train(REFERENCE, out, TINY.model_copy(update={"steps": TINY.steps + 20}), progress=False)
     assert "\n" not in str(err.value)
+
+
+def test_the_cpu_device_writes_the_bytes_of_a_run_without_one(trained: Path, tmp_path: Path):
+    """``device="cpu"`` (what ``--device auto`` resolves to without CUDA) moves nothing: every file
+    equals the default run's, and config.json names no device."""
+    out = tmp_path / "cpu"
+    train(REFERENCE, out, TINY, progress=False, device="cpu")
+    for name in ("model.safetensors", "train_state.safetensors"):
+        assert sha256_file(out / name) == sha256_file(trained / name), name
+    config, before = (json.loads((d / "config.json").read_text()) for d in (out, trained))
+    assert "device" not in config
+    assert {k: v for k, v in config.items() if k != "cpu_seconds"} == {
+        k: v for k, v in before.items() if k != "cpu_seconds"
+    }
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_a_cuda_run_without_cuda_is_a_one_line_error_before_any_work(tmp_path: Path, capsys):
+    from scenegen.cli import main
+
+    out = tmp_path / "cuda"
+    assert main(["train", "--steps", "2", "--out", str(out), "--device", "cuda", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--device cuda" in err[0] and "use --device cpu or auto" in err[0]
+    assert not out.exists()

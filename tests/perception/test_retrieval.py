@@ -102,7 +102,8 @@ def test_train_and_eval_commands_end_to_end(demo_batch: Path, cache: Path, tmp_p
     out = tmp_path / "head"
     common = ["--cache", str(cache), "--quiet"]
     assert main(["retrieval", "train", "--data", str(demo_batch), "--out", str(out), "--steps", "8",
-                 "--batch-size", "2", "--split", "all", "--design", design, *common]) == 0  # fmt: skip
+                 "--batch-size", "2", "--split", "all", "--design", design, "--device", "cpu",
+                 *common]) == 0  # fmt: skip
     config = json.loads((out / "config.json").read_text())
     assert config["kind"] == kind and config["training"]["steps"] == 8
     assert config["training"]["data"]["sources"][0]["path"] == str(demo_batch)

@@ -149,10 +149,10 @@ def install(guard: DecisionGuard, monkeypatch) -> None:
     original_score = scoring.score_observation
     monitor_init, monitor_update = RetrieveMonitor.__init__, RetrieveMonitor.update
 
-    def camera_observations(self, segmentation: bool = True):
+    def camera_observations(self, segmentation: bool = True, image: bool = True):
         deciding = guard.deciding
         with guard.aside():  # the camera sees the world as it is
-            out = render(self, segmentation=True)
+            out = render(self, segmentation=True, image=image)
             if not segmentation:
                 out = {k: v for k, v in out.items() if not k.endswith("_segmentation")}
                 out |= {
@@ -173,9 +173,9 @@ def install(guard: DecisionGuard, monkeypatch) -> None:
             raise AssertionError("env.target_pose() was read at decision time")
         return pose(self)
 
-    def observe(env, perception=None):
+    def observe(env, perception=None, image=True):
         guard.begin(env)
-        return original_observe(env, perception)
+        return original_observe(env, perception, image)
 
     def run_primitive(*args, **kwargs):
         try:

@@ -129,6 +129,7 @@ def train_classifier(
     progress: bool = False,
     split=depth_edge_regions,
     design: dict | None = None,
+    device: str = "cpu",
 ) -> dict:
     """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames (regions by
     ``split``, see :func:`frame_candidates`); save it. ``design``: what config.json says of the
@@ -137,9 +138,11 @@ def train_classifier(
     Batches of 64 are balanced over the labels (a fork is rarer than a box); within a label a
     candidate is drawn by its scene's weight in the seed's mixture (generated sources weighted
     ``alpha``, as the segmenter's and the policy's training draw scenes); each crop is flipped along
-    either axis at random and its colours scaled (dim scenes are a rare case)."""
+    either axis at random and its colours scaled (dim scenes are a rare case). ``device``: where the
+    weights and batches live (scenegen/devices.py; batches are drawn on the CPU either way)."""
     from tqdm import tqdm
 
+    from scenegen.devices import resolve_device
     from scenegen.env.mixture import scene_weights
     from scenegen.perception.retrieval.train import default_recipe
 
@@ -156,7 +159,8 @@ def train_classifier(
             scene_of.append(i)
     x, y = torch.from_numpy(np.stack(crops)), torch.tensor(labels)
     candidates_cpu = time.process_time() - started
-    model = CandidateClassifier(list(categories))
+    on = resolve_device(device)
+    model = CandidateClassifier(list(categories)).to(on)
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     rng = np.random.default_rng(seed)
     members = [np.nonzero(y.numpy() == c)[0] for c in range(1 + len(categories))]
@@ -176,7 +180,7 @@ def train_classifier(
         batch[:, :3] = (
             batch[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (64, 1, 1, 1)).astype(np.float32))
         ).clamp(0, 1)
-        loss = F.cross_entropy(model(batch), y[index])
+        loss = F.cross_entropy(model(batch.to(on)), y[index].to(on))
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -197,6 +201,7 @@ def train_classifier(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    model.cpu()
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "model.safetensors"))
     config = (design or {"kind": "candidate_classifier"}) | {
         "categories": list(categories),
@@ -219,6 +224,7 @@ def train_instances(
     separator_steps: int = SEPARATOR_STEPS,
     width: int = 8,
     channels: int = CHANNELS,
+    device: str = "cpu",
 ) -> dict:
     """The ``instances`` design: a :class:`Separator` trained on the scenes' instance labels, then
     the crop classifier trained on the regions it gives (as it will see them at prediction time);
@@ -237,7 +243,15 @@ def train_instances(
     inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels)
     weights = scene_weights(default_recipe(scenes, alpha), scenes)[scene_of]
     model, summary = train_separator(
-        inputs, labels, weights, contacts, separator_steps, seed, width=width, progress=progress
+        inputs,
+        labels,
+        weights,
+        contacts,
+        separator_steps,
+        seed,
+        width=width,
+        progress=progress,
+        device=device,
     )
     del inputs, labels, contacts
     summary["cpu_seconds"] = round(time.process_time() - started, 1)  # frames' inputs included
@@ -257,6 +271,7 @@ def train_instances(
         progress=progress,
         split=SeparatorRegions(model),
         design=design,
+        device=device,
     )
     return result | {"separator": summary, "cpu_seconds": round(time.process_time() - started, 1)}
 

@@ -254,6 +254,7 @@ def train_separator(
     width: int = 8,
     batch: int = 8,
     progress: bool = False,
+    device: str = "cpu",
 ) -> tuple[Separator, dict]:
     """A :class:`Separator` trained on frames' ``inputs`` (each (C, H, W)) and ``labels``
     (each (H, W) int8, :func:`interior_labels`). Half of a batch's crops are centred on any
@@ -262,13 +263,16 @@ def train_separator(
     ``contacts`` (:func:`contact_groups`) with equal chance, a pixel of it (a knife's thin contact
     with a can counts as much as a box's long one with a plate). Crops of ``PATCH`` px, flipped at
     random, colours scaled (dim scenes are a rare case). Returns the model and a summary (losses,
-    CPU-seconds)."""
+    CPU-seconds); the model on the CPU, wherever it trained (``device``, scenegen/devices.py)."""
     from tqdm import tqdm
 
+    from scenegen.devices import resolve_device
+
+    on = resolve_device(device)
     torch.manual_seed(seed)
     started = time.process_time()
     rng = np.random.default_rng([seed, 43])
-    model = Separator(width, len(inputs[0]))
+    model = Separator(width, len(inputs[0])).to(on)
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     p = np.asarray(weights, float) / np.sum(weights)
     anywhere = [np.argwhere(y >= 0) for y in labels]
@@ -297,6 +301,7 @@ def train_separator(
         x[:, :3] = (
             x[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (batch, 1, 1, 1)).astype(np.float32))
         ).clamp(0, 1)
+        x, y = x.to(on), y.to(on)
         weight = torch.where(y == 0, BOUNDARY_WEIGHT, 1.0) * (y >= 0)
         logits = model(x)[:, 0]
         loss = (
@@ -307,7 +312,7 @@ def train_separator(
         optimiser.step()
         losses.append(round(loss.item(), 6))
     summary = {"steps": steps, "losses": losses, "cpu_seconds": round(time.process_time() - started, 1)}
-    return model.eval(), summary
+    return model.cpu().eval(), summary
 
 
 def separator_frames(scenes, frames, channels: int = CHANNELS) -> tuple[list, list, list, list[int]]:

@@ -155,10 +155,12 @@ def _save_state(folder: Path, model, optimiser, step: int, losses: list[float], 
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(tmp / "model.safetensors"))
+    save_file(
+        {k: v.cpu().contiguous() for k, v in model.state_dict().items()}, str(tmp / "model.safetensors")
+    )
     state = optimiser.state_dict()
     tensors = {f"{i}.{name}": value for i, s in state["state"].items() for name, value in s.items()}
-    save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp / "optimiser.safetensors"))
+    save_file({k: v.cpu().contiguous() for k, v in tensors.items()}, str(tmp / "optimiser.safetensors"))
     meta = {"step": step, "losses": losses, "cpu_seconds": cpu, "key": key, "groups": state["param_groups"]}
     (tmp / "state.json").write_text(json.dumps(meta) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
@@ -198,22 +200,28 @@ def train_head(
     description: dict | None = None,
     progress: bool = False,
     stop_after: int | None = None,
+    device: str = "cpu",
 ) -> dict | None:
     """Train a :class:`RetrievalHead` for ``steps`` batches of ``batch_size`` scenes (each with all
     its cameras) drawn by the mixture; save it to ``out`` (safetensors + config.json with the losses,
     the recipe's effective shares and the CPU seconds) and return the training summary. Resumes from
     ``<out>/_resume``. ``stop_after``: stop at that step, leaving the resume state and no checkpoint
-    (a run split over several calls; returns None)."""
+    (a run split over several calls; returns None). ``device``: where the weights and batches live
+    (scenegen/devices.py; batches are drawn on the CPU either way)."""
     from tqdm import tqdm
+
+    from scenegen.devices import resolve_device
+
+    on = resolve_device(device)
 
     out = Path(out)
     torch.manual_seed(seed)
     recipe = recipe or default_recipe(data.scenes, alpha)
     sampler = MixtureSampler(recipe, data.scenes, num_samples=steps * batch_size, seed=seed)
     order = np.fromiter(iter(sampler), dtype=np.int64).reshape(steps, batch_size)
-    model = RetrievalHead(data.categories, width)
+    model = RetrievalHead(data.categories, width).to(on)
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    weight = torch.from_numpy(class_weights(data.labels, len(data.categories)))
+    weight = torch.from_numpy(class_weights(data.labels, len(data.categories))).to(on)
     key = json.dumps([steps, batch_size, seed, lr, width, alpha, order[:4].tolist(), len(data.scenes)])
     resume = out / "_resume"
     start, losses, cpu = _load_state(resume, model, optimiser, key)
@@ -224,6 +232,7 @@ def train_head(
         for group in optimiser.param_groups:  # cosine decay, a function of the step: resumable
             group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * step / steps))
         x, y = batch_tensors(data, order[step], np.random.default_rng([seed, step]))
+        x, y = x.to(on), y.to(on)
         loss = F.cross_entropy(model(x), y, weight=weight)
         optimiser.zero_grad()
         loss.backward()
@@ -245,6 +254,6 @@ def train_head(
         "cpu_seconds": round(cpu + time.process_time() - clock, 1),
         "data": description or {},
     }
-    model.eval().save(out, {"training": summary})
+    model.cpu().eval().save(out, {"training": summary})
     shutil.rmtree(resume, ignore_errors=True)
     return summary
