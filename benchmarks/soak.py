@@ -97,7 +97,14 @@ def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Pa
     if proc.returncode != 0:
         raise SystemExit(f"generate exited {proc.returncode}: {proc.stderr.read().decode()[-2000:]}")
     wall = time.perf_counter() - start
-    return {"n": n, "render": render, "wall_s": round(wall, 1), "samples": samples, "growth": growth(samples)}
+    return {
+        "n": n,
+        "render": render,
+        "wall_s": round(wall, 1),
+        "samples": samples,
+        "growth": growth(samples),
+        "trend": trend(samples),
+    }
 
 
 def growth(samples: list[dict], window: int = 3) -> dict[str, float]:
@@ -120,6 +127,36 @@ def growth(samples: list[dict], window: int = 3) -> dict[str, float]:
     return out | {"from_scenes": base[0]["scenes"], "to_scenes": last[-1]["scenes"]}
 
 
+def trend(samples: list[dict]) -> dict[str, dict]:
+    """Per column: a least-squares line through the samples from WARM scenes on, its slope (MB per
+    1,000 scenes, with a 95 % interval from the residuals, t with n - 2 degrees of freedom) and the
+    growth it implies from the first such sample to the last, in % of the line's value at the first:
+    the trend, which the jumps between adjacent samples (each scene is its own model) do not move much."""
+    import numpy as np
+    from scipy import stats
+
+    rows = [r for r in samples if r["scenes"] >= WARM]
+    if len(rows) < 4:
+        return {}
+    x = np.array([r["scenes"] for r in rows], float)
+    out = {}
+    for key in (k for k in rows[-1] if k not in ("scenes", "wall_s")):
+        y = np.array([r[key] for r in rows], float)
+        if y.mean() <= 0:
+            continue
+        fit = stats.linregress(x, y)
+        half = stats.t.ppf(0.975, len(x) - 2) * fit.stderr
+        start = fit.intercept + fit.slope * x[0]
+        out[key] = {
+            "slope_mb_per_1000": round(1000 * fit.slope, 2),
+            "slope_ci95": [round(1000 * (fit.slope - half), 2), round(1000 * (fit.slope + half), 2)],
+            "fitted_growth_pct": round(100 * fit.slope * (x[-1] - x[0]) / start, 2),
+            "from_scenes": int(x[0]),
+            "to_scenes": int(x[-1]),
+        }
+    return out
+
+
 def table(run: dict) -> str:
     keys = [k for k in run["samples"][-1] if k not in ("scenes", "wall_s")] if run["samples"] else []
     lines = ["| scenes | wall s | " + " | ".join(f"{k} MB" for k in keys) + " |"]
@@ -131,6 +168,12 @@ def table(run: dict) -> str:
     if g:
         shown = ", ".join(f"{k} {v:+.1f} %" for k, v in g.items() if k not in ("from_scenes", "to_scenes"))
         lines.append(f"growth, mean of 3 samples from {g['from_scenes']} scenes to the last 3: {shown}")
+    for key, t in run.get("trend", {}).items():
+        lines.append(
+            f"trend of {key}: {t['fitted_growth_pct']:+.1f} % fitted from {t['from_scenes']} to "
+            f"{t['to_scenes']} scenes ({t['slope_mb_per_1000']:+.1f} MB per 1,000 scenes, "
+            f"95 % {t['slope_ci95']})"
+        )
     return "\n".join(lines)
 
 
@@ -144,7 +187,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--every", type=int, default=100, help="sample every this many scenes (default 100)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "soak.json")
+    parser.add_argument(
+        "--report", action="store_true", help="only report the runs saved in --json again, trends fitted"
+    )
     args = parser.parse_args(argv)
+    if args.report:
+        results = json.loads(args.json.read_text())
+        for run in results["runs"]:
+            run["trend"] = trend(run["samples"])
+            print(f"{run['n']} scenes, {'rendered' if run['render'] else 'no rendering'}:")
+            print(table(run))
+        args.json.write_text(json.dumps(results, indent=1) + "\n")
+        return 0
     os.environ.setdefault("MUJOCO_GL", "egl")
     results = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs", "runs": []}
     with tempfile.TemporaryDirectory(prefix="soak") as tmp:

@@ -121,14 +121,16 @@ def read_rgb(path: Path) -> np.ndarray:
 # ---------------------------------------------------------------- a stored batch
 
 
-def batch_image_statistics(batch: Path) -> tuple[np.ndarray, list[str], list[str]]:
+def batch_image_statistics(batch: Path, stored: bool = True) -> tuple[np.ndarray, list[str], list[str]]:
     """Statistics of every RGB image of a stored batch: rows (N, S), and the scene id and camera
     name of each row.
 
     Scenes are taken in the order of the batch's ``index.jsonl``; within a scene, cameras in the
-    order of scene.json ``cameras``, each one's ``images.rgb`` file. A missing index or scene.json, a
-    camera without an RGB image (a ``--no-render`` batch) or an unreadable PNG raises ValueError
-    naming the file.
+    order of scene.json ``cameras``, each one's ``images.rgb`` file. ``stored``: a camera whose
+    scene.json entry holds its ``image_stats`` (measured by the worker on the frame it encoded, since
+    issue 44) gives those, else its PNG is decoded and measured; ``stored=False`` measures every PNG.
+    A missing index or scene.json, a camera without an RGB image (a ``--no-render`` batch) or an
+    unreadable PNG raises ValueError naming the file.
     """
     from scenegen.core.files import confined
     from scenegen.store.batch import INDEX, scene_dirs
@@ -151,7 +153,11 @@ def batch_image_statistics(batch: Path) -> tuple[np.ndarray, list[str], list[str
                     f"{scene_json}: camera {camera['name']!r} has no RGB image (was the batch generated "
                     "with --no-render?); image statistics need rendered images"
                 )
-            rows.append(image_statistics(read_rgb(confined(scene_dir / str(name), batch, "an image"))))
+            known = camera.get("image_stats") if stored else None
+            if known is not None and len(known) == len(IMAGE_STAT_NAMES):
+                rows.append(np.asarray(known, dtype=np.float64))
+            else:
+                rows.append(image_statistics(read_rgb(confined(scene_dir / str(name), batch, "an image"))))
             scene_ids.append(entry["scene_id"])
             cameras.append(camera["name"])
     stats = np.stack(rows) if rows else np.zeros((0, len(IMAGE_STAT_NAMES)))

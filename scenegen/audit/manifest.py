@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from scenegen.audit import IMAGE_SAMPLE
 from scenegen.audit.files import audit_batch, audit_table
 from scenegen.manifest.derive import effective_shares
 from scenegen.manifest.io import ManifestError, inside, load_manifest_data, validation_problems
@@ -85,11 +86,17 @@ class AuditReport:
 
 
 class _Audit:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, workers: int = 1, backend=None, image_sample: int = IMAGE_SAMPLE, seed=0):
+        from scenegen.runner.executors import LOCAL
+
         self.path = Path(path)
         self.folder = self.path.resolve().parent
         self.report = AuditReport(str(path))
         self._hashes: dict[str, str] = {}
+        # where a batch's per-scene checks run (audit/files.py), and how many scenes' pixels are
+        # re-measured, drawn by which seed
+        self.workers, self.backend = workers, backend or LOCAL
+        self.image_sample, self.sample_seed = image_sample, seed
 
     def file_sha256(self, path: Path) -> str:
         # every scene lists the batch's shared _assets/ files: hash each once per audit
@@ -334,6 +341,11 @@ class _Audit:
             self.report.verified.append(f"{where}: alpha {recipe.alpha}, shares {expected}")
 
 
-def audit(path: Path) -> AuditReport:
-    """Audit the manifest at ``path`` against the files it describes; see the module docstring."""
-    return _Audit(path).run()
+def audit(
+    path: Path, workers: int = 1, backend=None, image_sample: int = IMAGE_SAMPLE, seed: int = 0
+) -> AuditReport:
+    """Audit the manifest at ``path`` against the files it describes; see the module docstring.
+    ``workers`` and ``backend`` (runner/executors.py, default this process): where a batch's
+    per-scene checks run; ``image_sample``: the scenes per batch, drawn by ``seed``, whose images'
+    stored statistics are re-measured from their pixels (every file's checksum is verified anyway)."""
+    return _Audit(path, workers, backend, image_sample, seed).run()

@@ -76,6 +76,8 @@ def _add_coverage_and_import(sub) -> None:
 
 
 def _add_audit_and_manifest(sub) -> None:
+    from scenegen.audit import IMAGE_SAMPLE  # a number: --help stays cheap
+
     aud = sub.add_parser(
         "audit",
         help="verify a data manifest against its files (counts, checksums, provenance, realism)",
@@ -95,6 +97,23 @@ def _add_audit_and_manifest(sub) -> None:
         help="a project manifest or a batch's manifest.yaml (default: data_manifest.yaml here)",
     )
     aud.add_argument("--json", action="store_true", help="the report as JSON on stdout")
+    aud.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes (or Ray actors) checking a batch's scenes (default 1)",
+    )
+    add_backend_arguments(aud)
+    aud.add_argument(
+        "--image-sample",
+        type=int,
+        default=IMAGE_SAMPLE,
+        metavar="N",
+        help=f"scenes per batch whose images' stored statistics are re-measured from the pixels (default "
+        f"{IMAGE_SAMPLE}; 0: none); the batch's image check is recomputed from every image's stored "
+        "statistics, and every file's checksum is verified whatever N is",
+    )
+    aud.add_argument("--sample-seed", type=int, default=0, help="seed of that sample (default 0)")
     aud.set_defaults(run=audit)
 
     man = sub.add_parser("manifest", help="add a batch to the project manifest (after auditing it)")
@@ -221,12 +240,19 @@ def import_real(args: argparse.Namespace) -> int:
 
 def audit(args: argparse.Namespace) -> int:
     from scenegen.audit.manifest import audit
+    from scenegen.runner.executors import BackendError
 
     if not args.manifest.is_file():
         return fail(
             f"{args.manifest}: no such manifest (give a data_manifest.yaml or a batch's manifest.yaml)"
         )
-    report = audit(args.manifest)
+    if args.workers < 1 or args.image_sample < 0:
+        return fail("--workers must be at least 1 and --image-sample at least 0")
+    try:
+        backend = backend_from(args)
+    except (BackendError, ValueError) as exc:
+        return fail(first_line(exc))
+    report = audit(args.manifest, args.workers, backend, args.image_sample, args.sample_seed)
     print(report.to_json() if args.json else report.to_text())
     return 0 if report.ok else 1
 

@@ -116,7 +116,7 @@ def score_observation(env, obs: dict) -> dict:
     """The metrics of a learned observation's predicted target (``<cam>_predicted_target``) against
     the simulator's segmentation, rendered now from the same state: scoring, the only reader of the
     segmentation while a learned policy runs. Per camera metrics, the scene's hit and wrong object."""
-    truth = env.camera_observations()
+    truth = env.camera_observations(image=False)  # the masks only: no colour pass
     scene = env.scene
     ids = [scene.segmentation[o.name] for o in scene.objects]
     per_camera = {}
