@@ -44,6 +44,13 @@ def add_backend_arguments(parser) -> None:
         help="with --backend ray: join this Ray cluster ('auto', HOST:6379 or ray://HOST:10001) "
         "instead of starting a local one (docs/scale.md)",
     )
+    parser.add_argument(
+        "--recycle-after",
+        type=int,
+        metavar="N",
+        help="with the local pool: replace each worker by a fresh process after N items (its memory "
+        "returned; results unchanged, a worker's start paid again); default: never",
+    )
 
 
 def backend_from(args):
@@ -51,7 +58,7 @@ def backend_from(args):
     cannot run here (Ray not installed, --address without --backend ray)."""
     from scenegen.runner.executors import Backend, import_ray
 
-    backend = Backend(args.backend, args.address)
+    backend = Backend(args.backend, args.address, getattr(args, "recycle_after", None))
     if backend.kind == "ray":
         import_ray()  # fail before any work when Ray is missing
     return backend

@@ -41,16 +41,22 @@ class BackendError(RuntimeError):
 class Backend:
     """``kind`` "local" (this process for one worker, else a spawn pool) or "ray" (one actor per
     worker, 1 CPU each); ``address`` joins an existing Ray cluster ("auto", "ray://HOST:10001",
-    "HOST:6379"), and without one ``ray.init`` starts a local cluster with ``workers`` CPUs."""
+    "HOST:6379"), and without one ``ray.init`` starts a local cluster with ``workers`` CPUs.
+    ``recycle_after``: a local pool's worker is replaced by a fresh one after this many items (its
+    memory returned; the new one runs the initializer again); None: never. Items are pure functions of
+    their inputs, so recycling changes no result, only what a long run holds."""
 
     kind: str = "local"
     address: str | None = None
+    recycle_after: int | None = None
 
     def __post_init__(self):
         if self.kind not in BACKENDS:
             raise BackendError(f"backend {self.kind!r}: choose one of {', '.join(BACKENDS)}")
         if self.address is not None and self.kind != "ray":
             raise BackendError("--address names a Ray cluster: use it with --backend ray")
+        if self.recycle_after is not None and (self.kind != "local" or self.recycle_after < 1):
+            raise BackendError("--recycle-after: a positive number of items, with --backend local")
 
 
 LOCAL = Backend()
@@ -109,11 +115,11 @@ def ordered_map(
             initializer(*initargs)
         yield from map(fn, items)
     else:
-        yield from _pool_map(fn, items, workers, initializer, initargs)
+        yield from _pool_map(fn, items, workers, initializer, initargs, backend.recycle_after)
 
 
-def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
-    pool = start_pool(workers, initializer, initargs)
+def _pool_map(fn, items, workers: int, initializer, initargs, recycle_after: int | None = None) -> Iterator:
+    pool = start_pool(workers, initializer, initargs, recycle_after)
     try:
         pending: deque = deque()
         for item in items:
@@ -126,8 +132,11 @@ def _pool_map(fn, items, workers: int, initializer, initargs) -> Iterator:
         stop_pool(pool)
 
 
-def start_pool(workers: int, initializer, initargs: tuple) -> ProcessPoolExecutor:
-    """A spawn pool of ``workers`` processes that each ran ``initializer(*initargs)``, started now."""
+def start_pool(
+    workers: int, initializer, initargs: tuple, recycle_after: int | None = None
+) -> ProcessPoolExecutor:
+    """A spawn pool of ``workers`` processes that each ran ``initializer(*initargs)``, started now;
+    each replaced after ``recycle_after`` items (None: kept)."""
     # concurrent.futures rather than multiprocessing.Pool: a worker that dies (or whose initializer
     # fails) breaks the pool with an error instead of being respawned forever.
     pool = ProcessPoolExecutor(
@@ -135,6 +144,7 @@ def start_pool(workers: int, initializer, initargs: tuple) -> ProcessPoolExecuto
         mp_context=multiprocessing.get_context("spawn"),
         initializer=_pool_worker_start,
         initargs=(os.getpid(), initializer, initargs),
+        max_tasks_per_child=recycle_after,
     )
     for _ in range(workers):  # start every worker now: their start-up overlaps the first items' making
         pool.submit(int)

@@ -64,7 +64,11 @@ def repaired_outcomes(
         threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
         try:
             initargs = (config.model_dump_json(), True, export, shared_state(config))
-            runner = _Ray(workers, initargs, backend) if backend.kind == "ray" else _Pool(workers, initargs)
+            runner = (
+                _Ray(workers, initargs, backend)
+                if backend.kind == "ray"
+                else _Pool(workers, initargs, backend.recycle_after)
+            )
         except BaseException:
             _torch_threads(threads)
             raise
@@ -159,8 +163,8 @@ class _Serial:
 class _Pool:
     """A local spawn pool (executors.start_pool), outcomes taken as they finish."""
 
-    def __init__(self, workers: int, initargs: tuple):
-        self.pool = start_pool(workers, init_worker, initargs)
+    def __init__(self, workers: int, initargs: tuple, recycle_after: int | None = None):
+        self.pool = start_pool(workers, init_worker, initargs, recycle_after)
         self.pending: dict[concurrent.futures.Future, SceneProposal] = {}
 
     @property

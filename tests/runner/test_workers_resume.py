@@ -186,6 +186,24 @@ def test_one_and_two_workers_give_identical_batches(reference: Path, single_work
     assert_same_batch(single_worker, reference)
 
 
+def test_recycled_workers_give_the_same_bytes(recipe: Path, reference: Path, tmp_path: Path):
+    """--recycle-after 2: each pool worker is replaced by a fresh process after two proposals (its
+    memory returned, catalog and GL context made again); the batch is the same, byte for byte."""
+    out = tmp_path / "batch"
+    run_to_completion([*generate_cmd(recipe, out, workers=2), "--recycle-after", "2"])
+    assert_same_batch(out, reference)
+
+
+def test_recycling_is_refused_for_ray_and_for_zero(tmp_path: Path, capsys: pytest.CaptureFixture):
+    recipe = small_recipe(tmp_path / "small.yaml")
+    args = ["generate", str(recipe), "--out", str(tmp_path / "out"), "--quiet"]
+    for extra in (["--recycle-after", "0"], ["--recycle-after", "5", "--backend", "ray"]):
+        assert main([*args, *extra]) == USAGE_ERROR
+        err = capsys.readouterr().err
+        assert err.startswith(PREFIX) and "--recycle-after" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
 # ---------------------------------------------------------------- SIGKILL and resume
 
 
