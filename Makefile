@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -109,8 +109,11 @@ bench-repair: setup  ## multi-tag requests: tries and CPU per accepted scene, ba
 bench-env: setup  ## environment reset and step costs, with and without a camera (benchmarks/env_step.py)
 	$(BIN)/python benchmarks/env_step.py
 
-bench-primitives: setup  ## CPU-s per primitive execution and per labelled scene, observation render time (benchmarks/primitives.py)
+bench-primitives: setup  ## CPU-s per labelled scene and per closed-loop episode, baseline commit vs this checkout, outcomes compared bit for bit (benchmarks/primitives.py, ~15 min)
 	$(BIN)/python benchmarks/primitives.py
+
+bench-audit: setup  ## the audit of a 3,000-scene rendered batch, baseline commit vs this checkout, 1 and 2 workers (benchmarks/audit_scale.py; generating the batch ~30 min the first time)
+	$(BIN)/python benchmarks/audit_scale.py
 
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py
