@@ -106,14 +106,13 @@ def process_proposal(
         return out
 
     segmentation: dict[str, int] = {}
-    image_stats: dict[str, list[float]] = {}
     if config.render:
         clock.start()
         rendered = _render(model, data, proposal, config.robot_mesh_detail or 1.0)
         if isinstance(rendered, Rejection):
             out.rejection = rendered
             return out
-        out.images, segmentation, image_stats = rendered
+        out.images, segmentation = rendered
         clock.stop("render")
 
     clock.start()
@@ -129,9 +128,7 @@ def process_proposal(
         objects=tuple(objects),
         furniture=proposal.furniture,
         lighting=proposal.lighting,
-        cameras=tuple(
-            _camera_entry(cam, config.render, image_stats.get(cam.name)) for cam in proposal.cameras
-        ),
+        cameras=tuple(_camera_entry(cam, config.render) for cam in proposal.cameras),
         tags=tags,
         predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
@@ -167,12 +164,9 @@ def render_settings(config: PipelineConfig) -> dict | None:
 
 def _render(
     model, data, proposal: SceneProposal, robot_detail: float = 1.0
-) -> tuple[dict[str, bytes], dict[str, int], dict[str, list[float]]] | Rejection:
-    """PNG files of every camera (rgb, depth, seg), the segmentation ids and each camera's image
-    statistics (analysis/image_stats.py, measured here on the frame in memory: the batch's image
-    check and the audit read them instead of decoding every PNG again); a ``render_failed``
+) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:
+    """PNG files of every camera (rgb, depth, seg) and the segmentation ids; a ``render_failed``
     rejection when the renderer fails on this scene."""
-    from scenegen.analysis.image_stats import image_statistics
     from scenegen.render.offscreen import frames_to_files, process_renderer, segmentation_ids
 
     segmentation = segmentation_ids(
@@ -193,11 +187,9 @@ def _render(
         )
         return Rejection.from_check(proposal.index, result, proposal.attempt)
     images: dict[str, bytes] = {}
-    stats: dict[str, list[float]] = {}
     for cam, frame in zip(proposal.cameras, frames, strict=True):
         images.update(frames_to_files(cam.name, frame))
-        stats[cam.name] = image_statistics(frame.rgb).tolist()  # the PNG is lossless: the same pixels
-    return images, segmentation, stats
+    return images, segmentation
 
 
 def settled_objects(model: mujoco.MjModel, proposal: SceneProposal, qpos) -> list[SettledObject]:
@@ -244,7 +236,7 @@ def realism_check(
     )
 
 
-def _camera_entry(cam, rendered: bool = True, image_stats: list[float] | None = None) -> dict:
+def _camera_entry(cam, rendered: bool = True) -> dict:
     rot = world.camera_rotation(cam)
     return {
         **cam.model_dump(mode="json"),
@@ -255,7 +247,6 @@ def _camera_entry(cam, rendered: bool = True, image_stats: list[float] | None = 
             "rotation": [[round(float(v), 7) for v in row] for row in rot],
         },
         **({"images": {k: f"{cam.name}_{k}.png" for k in ("rgb", "depth", "seg")}} if rendered else {}),
-        **({"image_stats": image_stats} if image_stats is not None else {}),
     }
 
 
