@@ -28,15 +28,14 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
-import tarfile
 import tempfile
 import threading
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from baseline import ROOT, add_child_arguments, baseline_tree, child_main, run_child
+
 STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
 TICK = os.sysconf("SC_CLK_TCK")
 
@@ -139,27 +138,6 @@ def measure(spec: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------ the driver
-
-
-def baseline_tree(ref: str, into: Path) -> Path:
-    """The files of commit ``ref`` (git archive), extracted under ``into``."""
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref], capture_output=True, check=True).stdout
-    with tempfile.TemporaryFile() as f:
-        f.write(archive)
-        f.seek(0)
-        with tarfile.open(fileobj=f) as tar:
-            tar.extractall(into, filter="data")
-    return into
-
-
-def run_child(spec: dict, code: Path) -> dict:
-    """``measure(spec)`` in a fresh interpreter that imports scenegen from ``code``."""
-    env = {**os.environ, "PYTHONPATH": str(code), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", json.dumps(spec)]
-    result = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True, timeout=3600)
-    if result.returncode != 0:
-        raise SystemExit(f"{spec}: exited {result.returncode}\n{result.stderr[-3000:]}")
-    return json.loads(result.stdout.strip().splitlines()[-1])
 
 
 def configurations(args) -> list[dict]:
@@ -271,12 +249,11 @@ def main() -> None:
         help="also run every configuration at N2 > n accepted scenes: the cost per scene beyond n",
     )
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/pipeline_throughput.json"))
-    parser.add_argument("--child", help=argparse.SUPPRESS)
+    add_child_arguments(parser)
     args = parser.parse_args()
     if args.steady is not None and args.steady <= args.n:
         parser.error(f"--steady {args.steady}: give more accepted scenes than --n ({args.n})")
-    if args.child:
-        print(json.dumps(measure(json.loads(args.child))))
+    if child_main(args, measure):
         return
 
     results = []
@@ -289,7 +266,7 @@ def main() -> None:
                 f"running {spec['code']} {spec['backend']} workers={spec['workers']} {spec['pipeline']} ...",
                 flush=True,
             )
-            results.append({**spec, **run_child(spec, code[spec["code"]])})
+            results.append({**spec, **run_child(__file__, spec, code[spec["code"]])[0]})
     report(results)
     beyond = steady(results)
     if beyond:

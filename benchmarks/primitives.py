@@ -27,15 +27,12 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
+from baseline import ROOT, add_child_arguments, baseline_tree, child_main, run_child
 
 # ------------------------------------------------------------------------------ in the child
 
@@ -133,35 +130,6 @@ def measure(spec: dict) -> dict:
 # ------------------------------------------------------------------------------ the driver
 
 
-def baseline_tree(ref: str, into: Path) -> Path:
-    """The files of commit ``ref`` (git archive), extracted under ``into``."""
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", ref], capture_output=True, check=True).stdout
-    with tempfile.TemporaryFile() as f:
-        f.write(archive)
-        f.seek(0)
-        with tarfile.open(fileobj=f) as tar:
-            tar.extractall(into, filter="data")
-    return into
-
-
-def run_child(spec: dict, code: Path) -> dict:
-    """``measure(spec)`` in a fresh interpreter that imports scenegen from ``code``."""
-    env = {**os.environ, "PYTHONPATH": str(code), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    with tempfile.NamedTemporaryFile(suffix=".json") as out:
-        cmd = [
-            sys.executable,
-            str(Path(__file__).resolve()),
-            "--child",
-            json.dumps(spec),
-            "--child-out",
-            out.name,
-        ]
-        result = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True, timeout=3600)
-        if result.returncode != 0:
-            raise SystemExit(f"{spec}: exited {result.returncode}\n{result.stderr[-3000:]}")
-        return json.loads(Path(out.name).read_text())
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", type=int, default=4, help="labelled scenes (default 4)")
@@ -172,11 +140,9 @@ def main() -> None:
     )
     parser.add_argument("--no-baseline", dest="baseline", action="store_const", const=None)
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/primitives.json"))
-    parser.add_argument("--child", help=argparse.SUPPRESS)
-    parser.add_argument("--child-out", help=argparse.SUPPRESS)
+    add_child_arguments(parser)
     args = parser.parse_args()
-    if args.child:
-        Path(args.child_out).write_text(json.dumps(measure(json.loads(args.child))))
+    if child_main(args, measure):
         return
 
     kinds = [{"kind": "label", "scenes": args.scenes}]
@@ -191,7 +157,9 @@ def main() -> None:
             for spec in kinds:
                 for version in code if repeat % 2 == 0 else reversed(list(code)):
                     print(f"{spec['kind']} {version} (run {repeat + 1}) ...", flush=True)
-                    results[spec["kind"]].setdefault(version, []).append(run_child(spec, code[version]))
+                    results[spec["kind"]].setdefault(version, []).append(
+                        run_child(__file__, spec, code[version])[0]
+                    )
 
     summary, differ = {}, []
     for kind, by_version in results.items():

@@ -25,11 +25,11 @@ import json
 import os
 import subprocess
 import sys
-import tarfile
 import tempfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from baseline import ROOT, baseline_tree
+
 CHECKPOINT = "assets/generator"
 REQUESTS = (
     "retrieve the can clutter",
@@ -97,14 +97,6 @@ def run(
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def extract(commit: str, into: Path) -> Path:
-    archive = into / "baseline.tar"
-    subprocess.run(["git", "archive", "-o", str(archive), commit], cwd=ROOT, check=True)
-    with tarfile.open(archive) as tar:
-        tar.extractall(into / "code", filter="data")
-    return into / "code"
-
-
 def compare(a: list, b: list) -> tuple[int, float]:
     """(proposals identical in positions, largest position difference in m)."""
     same, worst = 0, 0.0
@@ -136,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         if not args.no_baseline:
-            code = extract(args.baseline, Path(tmp))
+            code = baseline_tree(args.baseline, Path(tmp) / "code")
             ckpt = args.baseline_checkpoint
             results["baseline_default_blas"] = run(code, args.requests, args.n, None, ckpt)
             results["baseline"] = run(code, args.requests, args.n, 1, ckpt)

@@ -1,14 +1,16 @@
 """Soak: does memory stay flat over a long batch?
 
     .venv/bin/python benchmarks/soak.py [--plain 3000] [--rendered 500] [--every 100] [--workers 2]
-        [--pipeline pipelines/procedural.yaml]
+        [--pipeline pipelines/procedural.yaml] [--recycle-after N] [--json benchmarks/results/soak.json]
 
 Runs `scenegen generate` twice as a user would (a subprocess, 2 pool workers): ``--plain`` scenes
 without rendering, then ``--rendered`` scenes with rendering (two 640x480 cameras). Every ``--every``
 accepted scenes (counted from index.jsonl) it samples the resident memory (VmRSS, /proc) of the
 coordinator and of each worker. Reported per run: the table of samples, and the growth of each process
 kind from the sample at 500 scenes (or the first sample, for a run shorter than that) to the last
-(goal: under 5 %). Prints the tables and saves JSON in benchmarks/results/soak.json.
+(goal: under 5 %), and the fitted trend from 500 scenes on. ``--recycle-after N`` passes the same flag
+to `scenegen generate` (each pool worker replaced by a fresh process after N proposals). Prints the
+tables and saves JSON in benchmarks/results/soak.json.
 """
 
 from __future__ import annotations
@@ -77,10 +79,20 @@ def accepted(batch: Path) -> int:
         return 0
 
 
-def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Path) -> dict:
+def soak(
+    pipeline: Path,
+    n: int,
+    render: bool,
+    every: int,
+    workers: int,
+    out: Path,
+    recycle_after: int | None = None,
+) -> dict:
     """One batch of ``n`` scenes, sampled every ``every`` accepted scenes."""
     cmd = [sys.executable, "-m", "scenegen.cli", "generate", str(pipeline), "--n", str(n), "--seed", "0"]
     cmd += ["--out", str(out), "--workers", str(workers), "--quiet", "--max-proposals", str(60 * n)]
+    if recycle_after is not None:
+        cmd += ["--recycle-after", str(recycle_after)]
     if not render:
         cmd.append("--no-render")
     start = time.perf_counter()
@@ -90,6 +102,9 @@ def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Pa
         count = accepted(out)
         if count >= next_at:
             memory = resident(proc.pid)
+            if not memory["workers"]:  # the batch is done and its pool already stopped
+                next_at = float("inf")
+                continue
             samples.append({"scenes": count, "wall_s": round(time.perf_counter() - start, 1), **memory})
             print(f"  {count} scenes: " + ", ".join(f"{k} {v:.0f} MB" for k, v in memory.items()), flush=True)
             next_at = (count // every + 1) * every
@@ -100,6 +115,7 @@ def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Pa
     return {
         "n": n,
         "render": render,
+        "recycle_after": recycle_after,
         "wall_s": round(wall, 1),
         "samples": samples,
         "growth": growth(samples),
@@ -107,10 +123,16 @@ def soak(pipeline: Path, n: int, render: bool, every: int, workers: int, out: Pa
     }
 
 
+def live(samples: list[dict]) -> list[dict]:
+    """The samples taken while the pool ran (a sample after the batch's end finds no worker)."""
+    return [s for s in samples if s.get("workers", 1) > 0]
+
+
 def growth(samples: list[dict], window: int = 3) -> dict[str, float]:
     """Per column: the mean of the last ``window`` samples against the mean of the ``window`` samples
     from WARM scenes on (from the first sample when the run is shorter), in %. Means over a few samples,
     because a worker's memory moves by ~10 % from one scene to the next (each scene is its own model)."""
+    samples = live(samples)
     if len(samples) < 2 * window:
         return {}
     first = next((i for i, s in enumerate(samples) if s["scenes"] >= WARM), 0)
@@ -135,7 +157,7 @@ def trend(samples: list[dict]) -> dict[str, dict]:
     import numpy as np
     from scipy import stats
 
-    rows = [r for r in samples if r["scenes"] >= WARM]
+    rows = [r for r in live(samples) if r["scenes"] >= WARM]
     if len(rows) < 4:
         return {}
     x = np.array([r["scenes"] for r in rows], float)
@@ -186,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rendered", type=int, default=500, help="scenes with rendering (default 500)")
     parser.add_argument("--every", type=int, default=100, help="sample every this many scenes (default 100)")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--recycle-after", type=int, default=None, help="replace workers after N proposals")
     parser.add_argument("--json", type=Path, default=ROOT / "benchmarks" / "results" / "soak.json")
     parser.add_argument(
         "--report", action="store_true", help="only report the runs saved in --json again, trends fitted"
@@ -207,7 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             kind = "rendered" if render else "no rendering"
             print(f"{n} scenes, {kind}, {args.workers} workers:", flush=True)
-            run = soak(args.pipeline, n, render, args.every, args.workers, Path(tmp) / f"batch_{int(render)}")
+            batch = Path(tmp) / f"batch_{int(render)}"
+            run = soak(args.pipeline, n, render, args.every, args.workers, batch, args.recycle_after)
             results["runs"].append(run)
             print(table(run), flush=True)
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,7 @@ Pure numpy and OpenCV: no simulation, no renderer.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,18 +122,15 @@ def read_rgb(path: Path) -> np.ndarray:
 # ---------------------------------------------------------------- a stored batch
 
 
-def batch_image_statistics(batch: Path, stored: bool = True) -> tuple[np.ndarray, list[str], list[str]]:
+def batch_image_statistics(batch: Path) -> tuple[np.ndarray, list[str], list[str]]:
     """Statistics of every RGB image of a stored batch: rows (N, S), and the scene id and camera
     name of each row.
 
     Scenes are taken in the order of the batch's ``index.jsonl``; within a scene, cameras in the
-    order of scene.json ``cameras``, each one's ``images.rgb`` file. ``stored``: a camera whose
-    scene.json entry holds its ``image_stats`` (measured by the worker on the frame it encoded, since
-    issue 44) gives those, else its PNG is decoded and measured; ``stored=False`` measures every PNG.
-    A missing index or scene.json, a camera without an RGB image (a ``--no-render`` batch) or an
-    unreadable PNG raises ValueError naming the file.
+    order of scene.json ``cameras``, each one's ``images.rgb`` file, decoded and measured. A missing
+    index or scene.json, a camera without an RGB image (a ``--no-render`` batch) or an unreadable PNG
+    raises ValueError naming the file.
     """
-    from scenegen.core.files import confined
     from scenegen.store.batch import INDEX, scene_dirs
 
     batch = Path(batch)
@@ -146,22 +144,55 @@ def batch_image_statistics(batch: Path, stored: bool = True) -> tuple[np.ndarray
             scene = json.loads(scene_json.read_text())
         except json.JSONDecodeError as exc:
             raise ValueError(f"{scene_json}: not valid JSON ({exc})") from None
-        for camera in scene["cameras"]:
-            name = (camera.get("images") or {}).get("rgb")
-            if name is None:
-                raise ValueError(
-                    f"{scene_json}: camera {camera['name']!r} has no RGB image (was the batch generated "
-                    "with --no-render?); image statistics need rendered images"
-                )
-            known = camera.get("image_stats") if stored else None
-            if known is not None and len(known) == len(IMAGE_STAT_NAMES):
-                rows.append(np.asarray(known, dtype=np.float64))
-            else:
-                rows.append(image_statistics(read_rgb(confined(scene_dir / str(name), batch, "an image"))))
-            scene_ids.append(entry["scene_id"])
-            cameras.append(camera["name"])
+        names, measured = scene_statistics(scene, scene_dir, batch)
+        rows += list(measured)
+        scene_ids += [entry["scene_id"]] * len(names)
+        cameras += names
     stats = np.stack(rows) if rows else np.zeros((0, len(IMAGE_STAT_NAMES)))
     return stats, scene_ids, cameras
+
+
+def scene_statistics(scene: dict, scene_dir: Path, batch: Path) -> tuple[list[str], np.ndarray]:
+    """The camera names and statistic rows (cameras, S) of one stored scene's RGB images (``scene``:
+    its scene.json), each image confined to ``batch``; ValueError naming the file as above."""
+    from scenegen.core.files import confined
+
+    names, rows = [], []
+    for camera in scene["cameras"]:
+        name = (camera.get("images") or {}).get("rgb")
+        if name is None:
+            raise ValueError(
+                f"{scene_dir / 'scene.json'}: camera {camera['name']!r} has no RGB image (was the batch "
+                "generated with --no-render?); image statistics need rendered images"
+            )
+        rows.append(image_statistics(read_rgb(confined(scene_dir / str(name), batch, "an image"))))
+        names.append(camera["name"])
+    return names, (np.stack(rows) if rows else np.zeros((0, len(IMAGE_STAT_NAMES))))
+
+
+def sampled_smd(
+    scene_rows: Sequence[np.ndarray], population: int, reference: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each statistic's standardized mean difference (as :func:`image_stats_check` computes it over
+    all of a batch's images) estimated from a simple random sample of the batch's scenes, and its
+    standard error. ``scene_rows``: each sampled scene's rows (its cameras, S); ``population``: the
+    scenes of the batch. The batch's image mean is a ratio (image sums over image counts), so the
+    estimate is the sample's ratio and its standard error the ratio estimator's: the spread of each
+    scene's residual sum (its rows' sum less the estimate times its image count) over sqrt(n), divided
+    by the mean image count, times the finite-population correction sqrt(1 - n / population); both in
+    the reference's scale (its standard deviation, floored at STD_FLOOR)."""
+    reference = np.asarray(reference, np.float64)
+    sums = np.stack([np.asarray(r, np.float64).sum(axis=0) for r in scene_rows])
+    counts = np.array([len(r) for r in scene_rows], np.float64)
+    n = len(scene_rows)
+    if n < 2 or counts.sum() < 2:
+        raise ValueError(f"a sample of {n} scene(s) and {int(counts.sum())} image(s): it needs 2 of each")
+    mean = sums.sum(axis=0) / counts.sum()
+    residual = sums - counts[:, None] * mean
+    correction = np.sqrt(max(0.0, 1.0 - n / max(population, n)))
+    error = residual.std(axis=0, ddof=1) / np.sqrt(n) / counts.mean() * correction
+    scale = np.maximum(reference.std(axis=0, ddof=1), STD_FLOOR)
+    return (mean - reference.mean(axis=0)) / scale, error / scale
 
 
 # ---------------------------------------------------------------- the check

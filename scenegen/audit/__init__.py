@@ -2,4 +2,6 @@
 itself (models, recipes, realism presence); files.py walks a source's files (the checksum chain,
 recounts, the source re-derived and its realism recomputed). docs/manifest.md."""
 
-IMAGE_SAMPLE = 64  # scenes of a batch whose images' statistics the audit re-measures from the pixels
+# Scenes of a rendered batch whose images the audit decodes for the image check (a larger batch is
+# judged on a seeded sample of this many, by audit/scenes.py's stated rule; a smaller one, exactly).
+IMAGE_SAMPLE = 200

@@ -28,7 +28,7 @@ from pathlib import Path, PurePosixPath
 
 import yaml
 
-from scenegen.audit.scenes import check_scenes
+from scenegen.audit.scenes import check_scenes, compare_image_sample
 from scenegen.manifest.derive import CHAINED_FILES, RECIPE_FILE, checksum_root
 from scenegen.manifest.io import inside
 from scenegen.manifest.schema import Source
@@ -200,7 +200,7 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
     for extra in sorted(set(dirs) - set(ids)):
         audit.violation(f"{where}: {extra}", "count", f"a scene directory {INDEX} does not list")
     batch = batch.resolve()  # once: below, a path is inside it unless a link (each one checked)
-    listed = check_scenes(audit, where, source, batch, index, repaired)
+    listed, images = check_scenes(audit, where, source, batch, index, repaired)
     _unlisted(audit, where, batch, dirs, listed)
     _unlisted_top_level(audit, where, batch)
     config = _recipe_digest(audit, f"{where}: {RECIPE_FILE}", batch / RECIPE_FILE, source.pipeline.sha256)
@@ -211,7 +211,7 @@ def audit_batch(audit, where: str, source: Source, batch: Path) -> None:
             if is_bundled(Path(location)):  # listed by a recipe of before it was refused: not a user's
                 continue
             audit_catalog_folder(audit, f"{where}: catalog {location}", catalog_file(Path(location)))
-        _rederive(audit, where, source, batch, config)
+        _rederive(audit, where, source, batch, config, images)
 
 
 def _unlisted(audit, where: str, batch: Path, dirs: list[str], listed: set[str]) -> None:
@@ -353,9 +353,11 @@ def audit_catalog_folder(audit, where: str, catalog_file: Path) -> None:
     _unlisted_under(audit, where, folder, accounted, ignored=staging)
 
 
-def _rederive(audit, where: str, source: Source, batch: Path, config) -> None:
+def _rederive(audit, where: str, source: Source, batch: Path, config, images=None) -> None:
     """Re-derive the source from the batch's files and recompute its realism checks; every field
-    that differs from the manifest is a violation (packages and scenegen version: warnings)."""
+    that differs from the manifest is a violation (packages and scenegen version: warnings).
+    ``images``: what the scene checks measured (audit/scenes.py's ImageSample); a sample of the
+    batch's scenes rather than all of them is compared by ``compare_image_sample``'s rule."""
     from scenegen.manifest.derive import batch_source
     from scenegen.manifest.realism_checks import batch_realism
 
@@ -375,10 +377,14 @@ def _rederive(audit, where: str, source: Source, batch: Path, config) -> None:
         if getattr(source, name) != getattr(derived, name):
             audit.warning(f"{where}.{name}", "provenance", "made with other versions than this scenegen's")
     recorded = {c.metric: c for c in source.realism}
-    for check in batch_realism(batch, config, source.checksums.root):
+    measured = images.measured() if images is not None else None
+    for check in batch_realism(batch, config, source.checksums.root, measured):
         mine = recorded.get(check.metric)
         if mine is None:
             continue  # a missing check is reported by the realism audit
+        if check.metric == "image_stats" and images is not None and not images.whole:
+            compare_image_sample(audit, where, mine, check, images)
+            continue
         differ = [f for f in REALISM_FIELDS if not _same(getattr(mine, f), getattr(check, f))]
         if differ:
             audit.violation(

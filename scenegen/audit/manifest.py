@@ -86,15 +86,17 @@ class AuditReport:
 
 
 class _Audit:
-    def __init__(self, path: Path, workers: int = 1, backend=None, image_sample: int = IMAGE_SAMPLE, seed=0):
+    def __init__(
+        self, path: Path, workers: int = 1, backend=None, image_sample: int | None = IMAGE_SAMPLE, seed=0
+    ):
         from scenegen.runner.executors import LOCAL
 
         self.path = Path(path)
         self.folder = self.path.resolve().parent
         self.report = AuditReport(str(path))
         self._hashes: dict[str, str] = {}
-        # where a batch's per-scene checks run (audit/files.py), and how many scenes' pixels are
-        # re-measured, drawn by which seed
+        # where a batch's per-scene checks run (audit/scenes.py), and how many scenes' images the
+        # image check decodes (None: all), drawn by which seed
         self.workers, self.backend = workers, backend or LOCAL
         self.image_sample, self.sample_seed = image_sample, seed
 
@@ -342,10 +344,11 @@ class _Audit:
 
 
 def audit(
-    path: Path, workers: int = 1, backend=None, image_sample: int = IMAGE_SAMPLE, seed: int = 0
+    path: Path, workers: int = 1, backend=None, image_sample: int | None = IMAGE_SAMPLE, seed: int = 0
 ) -> AuditReport:
     """Audit the manifest at ``path`` against the files it describes; see the module docstring.
     ``workers`` and ``backend`` (runner/executors.py, default this process): where a batch's
-    per-scene checks run; ``image_sample``: the scenes per batch, drawn by ``seed``, whose images'
-    stored statistics are re-measured from their pixels (every file's checksum is verified anyway)."""
+    per-scene checks run; ``image_sample``: the scenes of a larger rendered batch, drawn by ``seed``,
+    whose images are decoded for its image check (None: every scene's; every file's checksum is
+    verified anyway)."""
     return _Audit(path, workers, backend, image_sample, seed).run()

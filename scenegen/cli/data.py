@@ -106,12 +106,11 @@ def _add_audit_and_manifest(sub) -> None:
     add_backend_arguments(aud)
     aud.add_argument(
         "--image-sample",
-        type=int,
-        default=IMAGE_SAMPLE,
-        metavar="N",
-        help=f"scenes per batch whose images' stored statistics are re-measured from the pixels (default "
-        f"{IMAGE_SAMPLE}; 0: none); the batch's image check is recomputed from every image's stored "
-        "statistics, and every file's checksum is verified whatever N is",
+        default=str(IMAGE_SAMPLE),
+        metavar="N|all",
+        help=f"a rendered batch of more than N scenes (default {IMAGE_SAMPLE}) has its image check judged "
+        "on the images of N scenes drawn by --sample-seed (the rule is printed); 'all' decodes every "
+        "image. Every file's checksum is verified whatever N is",
     )
     aud.add_argument("--sample-seed", type=int, default=0, help="seed of that sample (default 0)")
     aud.set_defaults(run=audit)
@@ -246,13 +245,17 @@ def audit(args: argparse.Namespace) -> int:
         return fail(
             f"{args.manifest}: no such manifest (give a data_manifest.yaml or a batch's manifest.yaml)"
         )
-    if args.workers < 1 or args.image_sample < 0:
-        return fail("--workers must be at least 1 and --image-sample at least 0")
+    sample = None if args.image_sample == "all" else args.image_sample
+    if sample is not None and not (sample.isdigit() and int(sample) >= 2):
+        return fail(f"--image-sample {args.image_sample!r}: give a number of scenes, at least 2, or 'all'")
+    if args.workers < 1:
+        return fail("--workers must be at least 1")
     try:
         backend = backend_from(args)
     except (BackendError, ValueError) as exc:
         return fail(first_line(exc))
-    report = audit(args.manifest, args.workers, backend, args.image_sample, args.sample_seed)
+    sample = None if sample is None else int(sample)
+    report = audit(args.manifest, args.workers, backend, sample, args.sample_seed)
     print(report.to_json() if args.json else report.to_text())
     return 0 if report.ok else 1
 

@@ -89,7 +89,9 @@ def _reference_rows(path: str, size: int, mtime_ns: int) -> tuple[dict, ...]:
     return tuple(load_rows(Path(path), None))
 
 
-def _status(n: int, value: float, threshold: float, reference: int = MIN_SAMPLES) -> str:
+def check_status(n: int, value: float, threshold: float, reference: int = MIN_SAMPLES) -> str:
+    """A check's status: ``insufficient`` below MIN_SAMPLES scenes or without reference rows, else
+    passed or failed at ``threshold``."""
     if n < MIN_SAMPLES or reference == 0:
         return "insufficient"
     return "passed" if value <= threshold else "failed"
@@ -130,7 +132,7 @@ def layout_checks(
             metric="layout_c2st",
             value=c2st_value,
             threshold=C2ST_THRESHOLD,
-            status=_status(len(rows), c2st_value, C2ST_THRESHOLD, len(subset)),
+            status=check_status(len(rows), c2st_value, C2ST_THRESHOLD, len(subset)),
             settings={"seed": seed, "folds": 5, "features": FEATURES},
             details=c2st_details,
             **common,
@@ -139,7 +141,7 @@ def layout_checks(
             metric="layout_mmd",
             value=mmd_value,
             threshold=MMD_THRESHOLD,
-            status=_status(len(rows), mmd_value, MMD_THRESHOLD, len(subset)),
+            status=check_status(len(rows), mmd_value, MMD_THRESHOLD, len(subset)),
             settings={"seed": seed, "kernel": "gaussian, median heuristic", "estimate": "unbiased MMD^2"},
             details=mmd_details,
             **common,
@@ -155,10 +157,16 @@ def unknown_categories(rows: list[dict]) -> list[str]:
 
 
 def image_check(
-    batch: Path, batch_sha: str, reference: Path = REFERENCE_IMAGES, unknown: Sequence[str] = ()
+    batch: Path,
+    batch_sha: str,
+    reference: Path = REFERENCE_IMAGES,
+    unknown: Sequence[str] = (),
+    measured: tuple | None = None,
 ) -> RealismCheck:
     """``image_stats`` of a rendered batch's RGB images against the committed reference renders;
-    ``unknown``: categories of the batch that no reference render shows (then not judged)."""
+    ``unknown``: categories of the batch that no reference render shows (then not judged);
+    ``measured``: the batch's (rows, scene ids) already measured elsewhere (the audit's workers),
+    else its images are decoded here."""
     from scenegen.analysis.image_stats import (
         IMAGE_STATS_THRESHOLD,
         batch_image_statistics,
@@ -166,7 +174,7 @@ def image_check(
         load_reference_image_stats,
     )
 
-    rows, scene_ids, _ = batch_image_statistics(batch)
+    rows, scene_ids = measured if measured is not None else batch_image_statistics(batch)[:2]
     ref_rows, meta = load_reference_image_stats(reference)
     n = len(set(scene_ids))
     if unknown:  # objects of a user catalog, whose colours no reference render holds
@@ -184,7 +192,7 @@ def image_check(
         metric="image_stats",
         value=value,
         threshold=IMAGE_STATS_THRESHOLD,
-        status=_status(n, value, IMAGE_STATS_THRESHOLD, len(ref_rows)),
+        status=check_status(n, value, IMAGE_STATS_THRESHOLD, len(ref_rows)),
         batch_sha256=batch_sha,
         reference=RealismReference(
             source=_relative(reference), sha256=sha256_file(reference), subset=f"{len(ref_rows)} renders"
@@ -196,13 +204,14 @@ def image_check(
     )
 
 
-def batch_realism(batch: Path, config, batch_sha: str) -> list[RealismCheck]:
-    """Every realism check of a batch written by ``run_batch`` with recipe ``config``."""
+def batch_realism(batch: Path, config, batch_sha: str, images: tuple | None = None) -> list[RealismCheck]:
+    """Every realism check of a batch written by ``run_batch`` with recipe ``config``; ``images``:
+    its images' (rows, scene ids), when measured already (see :func:`image_check`)."""
     unconditional = bool(getattr(config.proposer, "unconditional", False))
     rows = batch_layout_rows(batch)
     checks = layout_checks(rows, batch_sha, config.condition, unconditional, config.seed)
     if config.render:
-        checks.append(image_check(batch, batch_sha, unknown=unknown_categories(rows)))
+        checks.append(image_check(batch, batch_sha, unknown=unknown_categories(rows), measured=images))
     return checks
 
 
