@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit bench-start sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -114,6 +114,9 @@ bench-primitives: setup  ## CPU-s per labelled scene and per closed-loop episode
 
 bench-audit: setup  ## the audit of a 3,000-scene rendered batch, baseline commit vs this checkout, 1 and 2 workers (benchmarks/audit_scale.py; generating the batch ~30 min the first time)
 	$(BIN)/python benchmarks/audit_scale.py
+
+bench-start: setup  ## the whole demo process (48 scenes, 2 workers) against the baseline commit's batch loop (benchmarks/start_finish.py, ~4 min)
+	$(BIN)/python benchmarks/start_finish.py
 
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py

@@ -11,7 +11,8 @@ recipe and catalog, the proposer's model, the workers' start, the loop, the batc
 realism checks, exit) and the batch loop's wall seconds as the batch's timings.json records them.
 Reported: the medians, and the goal's ratio, this checkout's whole process over the baseline's loop
 (issue 44: at most 1.2). The two versions' batches must agree byte for byte (index.jsonl,
-rejections.jsonl, and every scene file's checksum through them), else the benchmark fails.
+rejections.jsonl, and every scene file's checksum through them) and in the realism checks their
+manifests record, else the benchmark fails.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import yaml
 from baseline import ROOT, baseline_tree
 
 
@@ -46,6 +48,8 @@ def generate(code: Path, pipeline: str, n: int, workers: int, out: Path) -> dict
         name: hashlib.sha256((out / name).read_bytes()).hexdigest()
         for name in ("index.jsonl", "rejections.jsonl")
     }
+    realism = yaml.safe_load((out / "manifest.yaml").read_text())["sources"][0]["realism"]
+    logs["realism"] = hashlib.sha256(json.dumps(realism, sort_keys=True).encode()).hexdigest()
     return {"process_s": round(wall, 2), "loop_s": timings["wall"], "logs": logs}
 
 
@@ -79,7 +83,7 @@ def main() -> None:
     for v, m in median.items():
         print(f"| {v} | {m['process_s']} | {m['loop_s']} | {m['process_s'] - m['loop_s']:.2f} |")
     print(f"this checkout's whole process / the baseline's loop: {ratio} (goal: at most 1.2)")
-    print(f"same batches (index.jsonl, rejections.jsonl): {same}")
+    print(f"same batches (index.jsonl, rejections.jsonl, the manifest's realism checks): {same}")
     payload = {
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform()},
         "pipeline": args.pipeline,

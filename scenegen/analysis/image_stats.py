@@ -76,12 +76,17 @@ def image_statistics(rgb: np.ndarray) -> np.ndarray:
         raise ValueError(f"image_statistics takes an (H, W, 3) uint8 RGB image; got {rgb.shape} {rgb.dtype}")
     x = rgb.reshape(-1, 3).astype(np.float64) / 255.0
     luminance = x @ np.asarray(REC709)
-    total = x.sum(axis=1)
+    # per pixel over the three channels, written out: the same values as x.sum / x.max / x.min along
+    # axis 1 ((r + g) + b; max and min are exact), at half the cost of numpy's reductions over an
+    # axis of 3 (the image check of a 48-scene batch, 96 images: 6.7 -> 3.6 CPU-s)
+    r, g, b = x[:, 0], x[:, 1], x[:, 2]
+    total = r + g
+    total += b
     grey = total <= 0.0
     safe = np.where(grey, 1.0, total)
-    chroma_r = np.where(grey, 1.0 / 3.0, x[:, 0] / safe)
-    chroma_g = np.where(grey, 1.0 / 3.0, x[:, 1] / safe)
-    high, low = x.max(axis=1), x.min(axis=1)
+    chroma_r = np.where(grey, 1.0 / 3.0, r / safe)
+    chroma_g = np.where(grey, 1.0 / 3.0, g / safe)
+    high, low = np.maximum(np.maximum(r, g), b), np.minimum(np.minimum(r, g), b)
     saturation = np.where(high > 0.0, (high - low) / np.where(high > 0.0, high, 1.0), 0.0)
     p05, p95 = np.percentile(luminance, [5.0, 95.0])
     return np.array(

@@ -1,7 +1,5 @@
 """python -m scenegen.cli: the same as the scenegen command."""
 
-import sys
+from scenegen.cli import entry
 
-from scenegen.cli import main
-
-sys.exit(main())
+entry()

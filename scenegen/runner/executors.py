@@ -62,23 +62,38 @@ class Backend:
 LOCAL = Backend()
 
 
+def start_workers(
+    config: PipelineConfig, workers: int, backend: Backend = LOCAL, export: bool = True
+) -> ProcessPoolExecutor | None:
+    """The local pool that :func:`ordered_outcomes` or ``repaired_outcomes`` would start for
+    ``config``, started now, so that its workers load the recipe, the catalog and their GL context
+    while the caller loads its proposer; they take it over (and stop it). None where they start no
+    pool (one worker, or Ray, whose actors start with the map)."""
+    if backend.kind != "local" or workers <= 1:
+        return None
+    initargs = (config.model_dump_json(), True, export, shared_state(config))
+    return start_pool(workers, init_worker, initargs, backend.recycle_after)
+
+
 def ordered_outcomes(
     proposals: Iterator[SceneProposal],
     config: PipelineConfig,
     workers: int,
     export: bool = True,
     backend: Backend = LOCAL,
+    pool: ProcessPoolExecutor | None = None,
 ) -> Iterator[Outcome]:
-    """Outcomes of ``proposals`` in their order, computed by ``workers`` workers of ``backend``."""
+    """Outcomes of ``proposals`` in their order, computed by ``workers`` workers of ``backend``
+    (``pool``: the workers :func:`start_workers` started for them; stopped at the end)."""
     if backend.kind == "local" and workers <= 1:
         init_worker(config.model_dump_json(), False, export)
         yield from map(work, proposals)
         return
     threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
     try:
-        initargs = (config.model_dump_json(), True, export, shared_state(config))
+        initargs = () if pool else (config.model_dump_json(), True, export, shared_state(config))
         with one_blas_thread():
-            yield from ordered_map(work, proposals, workers, init_worker, initargs, backend)
+            yield from ordered_map(work, proposals, workers, init_worker, initargs, backend, pool)
     finally:
         _torch_threads(threads)
 
@@ -103,12 +118,16 @@ def ordered_map(
     initializer: Callable[..., None] | None = None,
     initargs: tuple = (),
     backend: Backend = LOCAL,
+    pool: ProcessPoolExecutor | None = None,
 ) -> Iterator[R]:
     """``fn(item)`` for each item, in the items' order, on ``workers`` workers of ``backend`` that
     each ran ``initializer(*initargs)`` once. ``fn`` and ``initializer`` are module-level functions
     (pickled by reference); at most IN_FLIGHT_PER_WORKER x workers items are out at a time, so
-    ``items`` may be a lazy stream. Closing the generator stops the workers."""
-    if backend.kind == "ray":
+    ``items`` may be a lazy stream. ``pool``: a local pool already started with that initializer
+    (:func:`start_pool`), used instead of a new one. Closing the generator stops the workers."""
+    if pool is not None:
+        yield from _pool_map(fn, items, workers, pool=pool)
+    elif backend.kind == "ray":
         yield from _ray_map(fn, items, workers, initializer, initargs, backend.address)
     elif workers <= 1:
         if initializer is not None:
@@ -118,8 +137,10 @@ def ordered_map(
         yield from _pool_map(fn, items, workers, initializer, initargs, backend.recycle_after)
 
 
-def _pool_map(fn, items, workers: int, initializer, initargs, recycle_after: int | None = None) -> Iterator:
-    pool = start_pool(workers, initializer, initargs, recycle_after)
+def _pool_map(
+    fn, items, workers: int, initializer=None, initargs=(), recycle_after: int | None = None, pool=None
+) -> Iterator:
+    pool = pool or start_pool(workers, initializer, initargs, recycle_after)
     try:
         pending: deque = deque()
         for item in items:

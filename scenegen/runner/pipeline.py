@@ -20,7 +20,7 @@ import yaml
 
 from scenegen.propose.base import PROPOSERS, Proposer
 from scenegen.runner.config import PipelineConfig
-from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes
+from scenegen.runner.executors import LOCAL, Backend, ordered_outcomes, start_workers, stop_pool
 from scenegen.schema.scene import SceneProposal
 from scenegen.store.batch import MANIFEST, TIMINGS, BatchStore, atomic_write
 from scenegen.tags.predicates import PREDICATE_VERSION
@@ -47,12 +47,14 @@ def make_proposer(config: PipelineConfig, catalog) -> Proposer:
     return cls(config.proposer, catalog)
 
 
-def _outcomes(proposals, proposer, config: PipelineConfig, workers: int, backend: Backend, seconds):
+def _outcomes(
+    proposals, proposer, config: PipelineConfig, workers: int, backend: Backend, seconds, pool=None
+):
     """Per proposal index, in index order, the outcomes of its tries: one, or with the proposer's
     ``repairs`` the first pass and its repairs (runner/repairing.py), the repairs' making timed into
-    ``seconds['propose']``."""
+    ``seconds['propose']``; on ``pool`` where the workers were started already."""
     if not getattr(config.proposer, "repairs", 0):
-        return _one_try_each(ordered_outcomes(proposals, config, workers, backend=backend))
+        return _one_try_each(ordered_outcomes(proposals, config, workers, backend=backend, pool=pool))
     from scenegen.runner.repairing import repaired_outcomes
 
     def repair(parent, rejection, attempt):
@@ -62,7 +64,7 @@ def _outcomes(proposals, proposer, config: PipelineConfig, workers: int, backend
         finally:
             seconds["propose"] += time.perf_counter() - t0
 
-    return repaired_outcomes(proposals, config, workers, repair, backend=backend)
+    return repaired_outcomes(proposals, config, workers, repair, backend=backend, pool=pool)
 
 
 def _one_try_each(outcomes):
@@ -97,9 +99,15 @@ def run_batch(
     from tqdm import tqdm
 
     catalog = config.catalog()
-    proposer = make_proposer(config, catalog)
-    store = BatchStore(out)
-    state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    pool = start_workers(config, workers, backend)  # their start-up overlaps the proposer's loading
+    try:
+        proposer = make_proposer(config, catalog)
+        store = BatchStore(out)
+        state = store.open(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    except BaseException:
+        if pool is not None:
+            stop_pool(pool)
+        raise
     seconds = dict.fromkeys(STAGES, 0.0)  # all proposals, summed over workers
     accepted_seconds = dict.fromkeys(STAGES, 0.0)  # accepted scenes only
     accepted_cpu = dict.fromkeys(STAGES, 0.0)
@@ -116,7 +124,7 @@ def run_batch(
     )
 
     proposals = _timed(_proposals(proposer, config, index), seconds)
-    outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds)  # lazy: no pool yet
+    outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds, pool)  # lazy
     try:
         for tries in outcomes if accepted < config.n else ():
             *repaired, outcome = tries
@@ -151,6 +159,8 @@ def run_batch(
                 break
     finally:
         outcomes.close()  # stops the pool now, not at garbage collection
+        if pool is not None:  # never handed over when the batch was complete already
+            stop_pool(pool)
         bar.close()
     wall = time.perf_counter() - start
     write_batch_manifest(out, config, catalog.sha256)

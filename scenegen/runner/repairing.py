@@ -51,10 +51,12 @@ def repaired_outcomes(
     repair,
     export: bool = True,
     backend: Backend = LOCAL,
+    pool=None,
 ) -> Iterator[list[Outcome]]:
     """Per proposal index, in index order, the outcomes of its tries (see the module docstring);
     ``repair(parent, rejection, attempt)`` (the proposer's) makes a repair, ``config.proposer.repairs`` and
-    ``repair_width`` bound the search."""
+    ``repair_width`` bound the search; ``pool``: the local workers executors.start_workers started
+    for them (stopped at the end)."""
     settings = config.proposer
     serial = workers <= 1 and backend.kind == "local"
     if serial:
@@ -63,12 +65,15 @@ def repaired_outcomes(
     else:
         threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
         try:
-            initargs = (config.model_dump_json(), True, export, shared_state(config))
-            runner = (
-                _Ray(workers, initargs, backend)
-                if backend.kind == "ray"
-                else _Pool(workers, initargs, backend.recycle_after)
-            )
+            if pool is not None:
+                runner = _Pool(workers, (), pool=pool)
+            else:
+                initargs = (config.model_dump_json(), True, export, shared_state(config))
+                runner = (
+                    _Ray(workers, initargs, backend)
+                    if backend.kind == "ray"
+                    else _Pool(workers, initargs, backend.recycle_after)
+                )
         except BaseException:
             _torch_threads(threads)
             raise
@@ -163,8 +168,8 @@ class _Serial:
 class _Pool:
     """A local spawn pool (executors.start_pool), outcomes taken as they finish."""
 
-    def __init__(self, workers: int, initargs: tuple, recycle_after: int | None = None):
-        self.pool = start_pool(workers, init_worker, initargs, recycle_after)
+    def __init__(self, workers: int, initargs: tuple, recycle_after: int | None = None, pool=None):
+        self.pool = pool or start_pool(workers, init_worker, initargs, recycle_after)
         self.pending: dict[concurrent.futures.Future, SceneProposal] = {}
 
     @property

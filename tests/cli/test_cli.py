@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 import subprocess
 import sys
 from collections.abc import Callable
@@ -279,3 +280,13 @@ def test_generate_help_documents_options(capsys):
     text = capsys.readouterr().out
     for option in ("--n", "--seed", "--out", "--max-proposals", "pipeline"):
         assert option in text, option
+
+
+def test_the_command_ends_with_mains_code_and_all_its_output(tmp_path: Path):
+    """`scenegen` (cli.entry) ends the process right after the exit handlers: stdout still arrives
+    whole (a JSON report, held in the block buffer of a pipe until flushed) and the exit code is
+    main's."""
+    result = run_subprocess(["audit", str(REPO_ROOT / "data_manifest.yaml"), "--json"], cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["ok"] and report["verified"] and result.stdout.endswith("}\n")

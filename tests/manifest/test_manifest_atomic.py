@@ -47,7 +47,7 @@ def test_a_killed_generate_leaves_no_manifest_or_a_whole_one(tmp_path: Path):
     cmd += ["--out", str(out), "--no-render", "--quiet"]
     seen: set[bytes] = set()
     killed = 0
-    for delay in (1.0, 2.0, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0, 7.0):
+    for delay in (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0, 7.0):
         killed += kill_after(start(cmd), delay)
         manifest = out / "manifest.yaml"
         if manifest.exists():

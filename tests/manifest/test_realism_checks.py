@@ -18,6 +18,7 @@ from scenegen.manifest.realism_checks import (
     MMD_THRESHOLD,
     REFERENCE_TABLE,
     layout_checks,
+    reference_layouts,
     reference_subset,
 )
 from scenegen.schema.condition import Condition
@@ -58,6 +59,31 @@ def test_the_reference_subset_follows_the_request(rows):
     subset, description = reference_subset(rows, toppled)
     assert all(r["tag_toppled"] and not r["tag_clutter"] for r in subset)
     assert "+toppled" in description and "-clutter" in description and len(subset) >= 50
+
+
+@pytest.mark.parametrize(
+    "condition, unconditional",
+    [
+        (SPOON, False),
+        (
+            Condition(task="retrieve", target="mug", tags={"toppled": "required", "clutter": "forbidden"}),
+            False,
+        ),
+        (
+            Condition(
+                task="retrieve", target="can", tags={"under_overhang": "required", "low_light": "required"}
+            ),
+            False,
+        ),
+        (SPOON, True),
+    ],
+)
+def test_the_subset_read_from_the_table_is_the_subset_of_every_row(rows, condition, unconditional):
+    """A batch's manifest reads only the reference rows it compares with (reference_layouts): the
+    same rows, in the same order, as the subset chosen from every row, widenings included."""
+    assert reference_layouts(REFERENCE_TABLE, condition, unconditional) == reference_subset(
+        rows, condition, unconditional
+    )
 
 
 def test_reference_layouts_pass_the_layout_checks(rows):
