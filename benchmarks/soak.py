@@ -10,7 +10,8 @@ coordinator and of each worker. Reported per run: the table of samples, and the 
 kind from the sample at 500 scenes (or the first sample, for a run shorter than that) to the last
 (goal: under 5 %), and the fitted trend from 500 scenes on. ``--recycle-after N`` passes the same flag
 to `scenegen generate` (each pool worker replaced by a fresh process after N proposals). Prints the
-tables and saves JSON in benchmarks/results/soak.json.
+tables and saves JSON in benchmarks/results/soak.json. ``--recycle-cost N --plain 300 --json F``
+instead measures what recycling costs (:func:`recycle_cost`).
 """
 
 from __future__ import annotations
@@ -179,6 +180,45 @@ def trend(samples: list[dict]) -> dict[str, dict]:
     return out
 
 
+def recycle_cost(pipeline: Path, n: int, recycle_after: int, workers: int, repeats: int) -> dict:
+    """What recycling costs: the same ``n``-scene batch (no rendering) without recycling and with
+    ``--recycle-after``, alternated ``repeats`` times; wall and CPU seconds (the process and its pool,
+    RUSAGE_CHILDREN) of each, and the extra CPU per worker start (starts: proposals / N)."""
+    import resource
+    import statistics
+
+    cmd = [sys.executable, "-m", "scenegen.cli", "generate", str(pipeline), "--n", str(n), "--seed", "0"]
+    cmd += ["--workers", str(workers), "--quiet", "--no-render"]
+    runs: dict[str, list[tuple[float, float]]] = {"kept": [], "recycled": []}
+    proposals = 0
+    with tempfile.TemporaryDirectory(prefix="recycle") as tmp:
+        for repeat in range(repeats):
+            for kind in ("kept", "recycled") if repeat % 2 == 0 else ("recycled", "kept"):
+                out = Path(tmp) / f"{kind}_{repeat}"
+                extra = ["--recycle-after", str(recycle_after)] if kind == "recycled" else []
+                before, began = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+                subprocess.run([*cmd, "--out", str(out), *extra], check=True, capture_output=True)
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+                runs[kind].append((time.perf_counter() - began, cpu))
+                proposals = sum(1 for _ in open(out / "index.jsonl")) + sum(
+                    1 for _ in open(out / "rejections.jsonl")
+                )
+    median = {k: [statistics.median(v[i] for v in rs) for i in (0, 1)] for k, rs in runs.items()}
+    starts = proposals / recycle_after
+    return {
+        "n": n,
+        "recycle_after": recycle_after,
+        "proposals": proposals,
+        "worker_starts": round(starts, 1),
+        "runs": runs,
+        "median_wall_s": {k: round(v[0], 2) for k, v in median.items()},
+        "median_cpu_s": {k: round(v[1], 2) for k, v in median.items()},
+        "cpu_per_start_s": round((median["recycled"][1] - median["kept"][1]) / starts, 3),
+        "wall_ratio": round(median["recycled"][0] / median["kept"][0], 3),
+    }
+
+
 def table(run: dict) -> str:
     keys = [k for k in run["samples"][-1] if k not in ("scenes", "wall_s")] if run["samples"] else []
     lines = ["| scenes | wall s | " + " | ".join(f"{k} MB" for k in keys) + " |"]
@@ -213,7 +253,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--report", action="store_true", help="only report the runs saved in --json again, trends fitted"
     )
+    parser.add_argument(
+        "--recycle-cost",
+        type=int,
+        metavar="N",
+        help="only measure what recycling costs: --plain scenes without and with --recycle-after N",
+    )
     args = parser.parse_args(argv)
+    if args.recycle_cost:
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        cost = recycle_cost(args.pipeline, args.plain, args.recycle_cost, args.workers, 2)
+        print(json.dumps(cost, indent=1))
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(cost, indent=1) + "\n")
+        return 0
     if args.report:
         results = json.loads(args.json.read_text())
         for run in results["runs"]:

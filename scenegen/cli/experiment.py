@@ -181,6 +181,21 @@ def panels(args: argparse.Namespace) -> int:
     return 0
 
 
+def _v2_summary(metrics: dict) -> str:
+    """Version 2's headline lines: per sight, each arm's rare-panel success and the contrasts."""
+    lines = [f"transfer version 2, {metrics['side']} side"]
+    for sight in ("head", "oracle"):
+        if sight not in metrics:
+            continue
+        lines.append(f"{sight}: rare panels pooled")
+        fmt = lambda c: f"{c['mean']:+.3f} [{c['low']:+.3f}, {c['high']:+.3f}]"  # noqa: E731
+        for arm, c in metrics[sight]["rates"]["rare"].items():
+            lines.append(f"  {arm}: {fmt(c)} ({c['seeds']} seeds x {c['scenes']} layouts)")
+        for name, c in metrics[sight]["contrasts"]["rare"].items():
+            lines.append(f"  {name}: {fmt(c)}")
+    return "\n".join(lines)
+
+
 def transfer(args: argparse.Namespace) -> int:
     from scenegen.experiment.transfer import TransferError, run_transfer
     from scenegen.experiment.transfer_config import (
@@ -203,18 +218,29 @@ def transfer(args: argparse.Namespace) -> int:
             raise TransferConfigError(f"{args.config}: {exc}") from None
         if args.check:
             sweep = f", alpha sweep {list(config.alpha_sweep)}" if config.alpha_sweep else ""
-            arms = ", ".join(ARMS) + sweep
+            arms = ", ".join(getattr(config, "arms", ARMS)) + sweep
+            if getattr(config, "version", 1) == 2:
+                arms += f"; version 2, {config.side} panels, a head per arm and seed"
             print(
                 f"{args.config}: valid. arms {arms}; {len(config.training.seeds)} training seeds, "
                 f"{config.training.steps} steps; sizes A {config.sizes.a}, A+ {config.sizes.a_plus}, "
                 f"extra {config.sizes.extra}; -> {config.out}"
             )
             return 0
-        metrics = run_transfer(config, progress=not args.quiet, stop_after=args.stop_after)
+        if getattr(config, "version", 1) == 2:
+            from scenegen.experiment.transfer_v2 import run_transfer_v2
+
+            metrics = run_transfer_v2(config, progress=not args.quiet, stop_after=args.stop_after)
+        else:
+            metrics = run_transfer(config, progress=not args.quiet, stop_after=args.stop_after)
     except (TransferConfigError, TransferError, FileNotFoundError) as exc:
         return fail(str(exc).splitlines()[0])
     if not metrics:
         print(f"stopped after {args.stop_after}; rerun without --stop-after to continue")
+        return 0
+    if metrics.get("version") == 2:
+        print(_v2_summary(metrics))
+        print(json.dumps({"artifact": str(config.out), "seconds": metrics["timings"]}))
         return 0
     print((Path(config.out) / "report.md").read_text())
     print(

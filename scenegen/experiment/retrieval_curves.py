@@ -105,17 +105,26 @@ def scoring_scenes() -> dict[str, list[EnvScene]]:
 
 
 def train_head(
-    job: CurveJob, scenes: Sequence[EnvScene], out: Path, cache: Path, steps: dict | None = None
+    job: CurveJob,
+    scenes: Sequence[EnvScene],
+    out: Path,
+    cache: Path,
+    steps: dict | None = None,
+    recipe=None,
+    described: dict | None = None,
 ) -> dict:
     """Train ``job``'s head on ``scenes`` (frames from ``cache``) into ``out``, as the transfer
     experiment's arms train theirs: the design's defaults (``steps``: ``classifier`` and
-    ``separator`` step counts instead, for a tiny run), every scene drawn with equal weight."""
+    ``separator`` step counts instead, for a tiny run), every scene drawn with equal weight (or by
+    ``recipe``, a MixtureRecipe: a transfer arm's). ``described``: what config.json records of the
+    training set (default: the job and the scenes' layout ids)."""
     from scenegen.assets.catalog import load_catalog
     from scenegen.perception.retrieval.frames import scene_frames
 
     categories = list(load_catalog().categories)
     frames = list(scene_frames(scenes, cache))
-    described = {"curve_job": job.name, "scenes": [panel_id(s) for s in scenes]}
+    described = described or {"curve_job": job.name, "scenes": [panel_id(s) for s in scenes]}
+    mixture = {} if recipe is None else {"recipe": recipe}
     steps = steps or {}
     classifier = {"steps": steps["classifier"]} if "classifier" in steps else {}
     if job.design == "instances":
@@ -123,12 +132,20 @@ def train_head(
 
         separator = {"separator_steps": steps["separator"]} if "separator" in steps else {}
         return train_instances(
-            scenes, frames, categories, out, seed=job.seed, description=described, **classifier, **separator
+            scenes,
+            frames,
+            categories,
+            out,
+            seed=job.seed,
+            description=described,
+            **classifier,
+            **separator,
+            **mixture,
         )
     from scenegen.perception.retrieval.candidates import train_classifier
 
     return train_classifier(
-        scenes, frames, categories, out, seed=job.seed, description=described, **classifier
+        scenes, frames, categories, out, seed=job.seed, description=described, **classifier, **mixture
     )
 
 

@@ -52,9 +52,12 @@ def _write_json(path: Path, value) -> None:
 
 
 # ------------------------------------------------------------------------------------------ sources
-def build_sources(config: TransferConfig, progress: bool = False) -> tuple[dict[str, list[EnvScene]], dict]:
+def build_sources(
+    config: TransferConfig, progress: bool = False, generated_kinds: tuple[str, ...] = ("D", "E")
+) -> tuple[dict[str, list[EnvScene]], dict]:
     """The scenes of every source (A, A+ extra, C, D, E; each scene's ``source`` is that name) and
-    the sources' description (ids, cells, generation counts and CPU-seconds)."""
+    the sources' description (ids, cells, generation counts and CPU-seconds). ``generated_kinds``:
+    the generated sources made (a run of some arms only needs theirs)."""
     every = load_rows(config.reference, None)
     train = [r for r in every if r["split"] == "train"]
     sizes = config.sizes
@@ -67,7 +70,7 @@ def build_sources(config: TransferConfig, progress: bool = False) -> tuple[dict[
         "C": [reference_scene(by_index[i], source="C") for i in sets.c_extra],
     }
     batches = config.cache / "batches"
-    generated = {kind: generate_cells(kind, cells, config, batches, progress) for kind in ("D", "E")}
+    generated = {kind: generate_cells(kind, cells, config, batches, progress) for kind in generated_kinds}
     for kind, per_cell in generated.items():
         scenes[kind] = [
             s for _, cell in sorted(per_cell.items()) for s in batch_scenes(Path(cell["batch"]), kind)
@@ -142,12 +145,21 @@ def runs(config: TransferConfig) -> list[dict]:
 
 # ------------------------------------------------------------------------------------- observations
 def settled_inputs(
-    scenes: list[EnvScene], inputs: str, observations: ObservationStore, workers: Workers
+    scenes: list[EnvScene],
+    inputs: str,
+    observations: ObservationStore,
+    workers: Workers,
+    retrieval: Path | None = None,
 ) -> np.ndarray:
-    """Each scene's policy input at its settled state (rendered where the store lacks it)."""
-    keys = [ObservationStore.key(scene_sha256(s), (), NOMINAL, inputs) for s in scenes]
+    """Each scene's policy input at its settled state (rendered where the store lacks it), its mask
+    the ``retrieval`` head's prediction (None: the oracle's)."""
+    from scenegen.experiment.sequences import sight
+
+    seen = sight(retrieval, NOMINAL)
+    keys = [ObservationStore.key(scene_sha256(s), (), NOMINAL, inputs, seen) for s in scenes]
+    extra = () if retrieval is None else (retrieval,)
     jobs = [
-        ("observe", s, (None, NOMINAL, inputs, k))
+        ("observe", s, (None, NOMINAL, inputs, k, *extra))
         for s, k in zip(scenes, keys, strict=True)
         if observations.get(k) is None
     ]
@@ -156,18 +168,30 @@ def settled_inputs(
     return np.stack([observations.get(k) for k in keys])
 
 
-def train_run(run: dict, config: TransferConfig, scenes, labels, observations, workers, folder: Path) -> Path:
-    """Train one run's policy into ``folder`` (skipped when its checkpoint is there)."""
+def train_run(
+    run: dict,
+    config: TransferConfig,
+    scenes,
+    labels,
+    observations,
+    workers,
+    folder: Path,
+    retrieval: Path | None = None,
+    arm=None,
+) -> Path:
+    """Train one run's policy into ``folder`` (skipped when its checkpoint is there), on inputs seen
+    through ``retrieval`` (None: the oracle's masks); ``arm``: the (scenes, mixture) it trains on
+    (default :func:`arm_data`'s)."""
     from scenegen.policy.train import Examples, train_policy
 
     if (folder / "config.json").exists() and (folder / "model.safetensors").exists():
         return folder
-    data, recipe = arm_data(run["arm"], run["alpha"], scenes, config.tags)
+    data, recipe = arm or arm_data(run["arm"], run["alpha"], scenes, config.tags)
     data = [s for s in data if scene_sha256(s) in labels]
     primitives = list(config.primitives)
     bits = [labels[scene_sha256(s)] for s in data]
     examples = Examples(
-        x=settled_inputs(data, run["inputs"], observations, workers),
+        x=settled_inputs(data, run["inputs"], observations, workers, retrieval),
         y=np.array([[b.get(p, False) for p in primitives] for b in bits], dtype=np.float32),
         known=np.array([[p in b for p in primitives] for b in bits]),
         scenes=data,

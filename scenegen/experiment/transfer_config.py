@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from scenegen.manipulation.primitives import PRIMITIVES
-from scenegen.policy.panels import PANEL_TAGS
+from scenegen.policy.panels import PANEL_TAGS, PANELS_V2_FILE
 
 ARMS = ("A", "A+", "B", "C", "D", "E")
 
@@ -124,6 +125,47 @@ class TransferConfig(_Strict):
         return arms
 
 
+class HeadSettings(_Strict):
+    """Version 2: the retrieval head every arm trains on its own annotated scenes (the design's
+    defaults unless step counts are given, for a tiny run)."""
+
+    design: Literal["instances", "candidates"] = "instances"
+    classifier_steps: int | None = Field(None, ge=1)
+    separator_steps: int | None = Field(None, ge=1)
+
+    def steps(self) -> dict:
+        """The step counts given (retrieval_curves.train_head's ``steps``)."""
+        counts = {"classifier": self.classifier_steps, "separator": self.separator_steps}
+        return {k: v for k, v in counts.items() if v is not None}
+
+
+class TransferConfigV2(TransferConfig):
+    """Version 2 (issue 45; docs/transfer.md): each arm and seed trains its own retrieval head and its
+    chooser through that head's masks, and is evaluated through it on one ``side`` of the version 2
+    panels (``panel_names``: which of its panels, None: all; ``per_panel``: the first N layouts of
+    each, for a tiny run); ``oracle_rows``: each chooser also
+    through true masks, the panel's ceiling. ``arms``: the arms run (the pilot: A+ and C)."""
+
+    version: Literal[2] = 2
+    panels: Path = PANELS_V2_FILE
+    side: Literal["validation", "test"] = "validation"
+    panel_names: tuple[str, ...] | None = None
+    per_panel: int | None = Field(None, ge=1)  # the first N layouts of each panel (None: all)
+    arms: tuple[str, ...] = ARMS
+    head: HeadSettings = HeadSettings()
+    oracle_rows: bool = True
+    alpha_sweep: tuple[float, ...] = ()
+    state_ablation: tuple[str, ...] = ()
+
+    @field_validator("arms")
+    @classmethod
+    def _known_arms(cls, arms):
+        unknown = [a for a in arms if a not in ARMS]
+        if unknown or not arms:
+            raise ValueError(f"{unknown or 'none'}: arms are {', '.join(ARMS)}")
+        return arms
+
+
 def load_transfer_config(path: Path | None, overrides: dict | None = None) -> TransferConfig:
     """The configuration in ``path`` (None: the defaults) with top-level ``overrides``."""
     raw: dict = {}
@@ -142,8 +184,13 @@ def load_transfer_config(path: Path | None, overrides: dict | None = None) -> Tr
         if not isinstance(raw, dict):
             raise TransferConfigError(f"{path}: a transfer configuration is a mapping of keys")
     raw.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    kind = TransferConfigV2 if raw.get("version") == 2 else TransferConfig
+    if raw.get("version") not in (None, 1, 2):
+        raise TransferConfigError(f"{path or 'configuration'}: version: 1 or 2, not {raw['version']!r}")
+    if raw.get("version") == 1:
+        raw.pop("version")
     try:
-        return TransferConfig.model_validate(raw)
+        return kind.model_validate(raw)
     except ValidationError as exc:
         error = exc.errors()[0]
         where = ".".join(str(p) for p in error["loc"]) or "(top level)"

@@ -130,6 +130,7 @@ def train_classifier(
     split=depth_edge_regions,
     design: dict | None = None,
     device: str = "cpu",
+    recipe=None,
 ) -> dict:
     """Train a :class:`CandidateClassifier` on every candidate of the scenes' frames (regions by
     ``split``, see :func:`frame_candidates`); save it. ``design``: what config.json says of the
@@ -137,7 +138,8 @@ def train_classifier(
     separator).
     Batches of 64 are balanced over the labels (a fork is rarer than a box); within a label a
     candidate is drawn by its scene's weight in the seed's mixture (generated sources weighted
-    ``alpha``, as the segmenter's and the policy's training draw scenes); each crop is flipped along
+    ``alpha``, as the segmenter's and the policy's training draw scenes; ``recipe``: another
+    MixtureRecipe, e.g. a transfer arm's); each crop is flipped along
     either axis at random and its colours scaled (dim scenes are a rare case). ``device``: where the
     weights and batches live (scenegen/devices.py; batches are drawn on the CPU either way)."""
     from tqdm import tqdm
@@ -148,7 +150,7 @@ def train_classifier(
 
     torch.manual_seed(seed)
     started = time.process_time()
-    recipe = default_recipe(scenes, alpha)
+    recipe = recipe or default_recipe(scenes, alpha)
     weights = scene_weights(recipe, scenes)
     crops, labels, scene_of = [], [], []
     bar = tqdm(zip(scenes, frames, strict=True), total=len(scenes), desc="candidates", disable=not progress)
@@ -225,14 +227,15 @@ def train_instances(
     width: int = 8,
     channels: int = CHANNELS,
     device: str = "cpu",
+    recipe=None,
 ) -> dict:
     """The ``instances`` design: a :class:`Separator` trained on the scenes' instance labels, then
     the crop classifier trained on the regions it gives (as it will see them at prediction time);
     both saved in ``out`` (separator.safetensors, model.safetensors, config.json). ``frames``: the
-    scenes' frames, a sequence (read twice). Scenes are drawn by the seed's mixture (``alpha``), as
-    the classifier draws them. ``channels``: the separator's input planes (separation.py: 9; 7 as
-    separators were saved before the contact channels). Returns the classifier's summary with the
-    separator's under ``separator``."""
+    scenes' frames, a sequence (read twice). Scenes are drawn by the seed's mixture (``alpha``; or
+    ``recipe``), as the classifier draws them. ``channels``: the separator's input planes
+    (separation.py: 9; 7 as separators were saved before the contact channels). Returns the
+    classifier's summary with the separator's under ``separator``."""
     from safetensors.torch import save_file
 
     from scenegen.env.mixture import scene_weights
@@ -241,7 +244,8 @@ def train_instances(
 
     started = time.process_time()
     inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels)
-    weights = scene_weights(default_recipe(scenes, alpha), scenes)[scene_of]
+    recipe = recipe or default_recipe(scenes, alpha)  # the mixture both parts draw scenes by
+    weights = scene_weights(recipe, scenes)[scene_of]
     model, summary = train_separator(
         inputs,
         labels,
@@ -272,6 +276,7 @@ def train_instances(
         split=SeparatorRegions(model),
         design=design,
         device=device,
+        recipe=recipe,
     )
     return result | {"separator": summary, "cpu_seconds": round(time.process_time() - started, 1)}
 

@@ -1,0 +1,265 @@
+"""Transfer version 2 (issue 45; ``scenegen experiment transfer`` with ``version: 2``; docs/transfer.md):
+every arm sees through its own retrieval head. Version 1 trained only the chooser, on the simulator's
+masks, so more real rare data could not help it (C - A+ = -0.020 [-0.054, +0.014]).
+
+Per arm and training seed (a **run**, ``{arm}_s{seed}``):
+1. its retrieval **head**, trained on the arm's annotated scenes drawn by the arm's mixture
+   (:func:`arm_mixture`; the design and steps of ``config.head``; retrieval_curves.train_head);
+2. its **chooser**, trained on the arm's expert labels, each scene's input seen through that head
+   (transfer.train_run with ``retrieval``);
+3. its **evaluation** in closed loop through the head, on each panel of one side of the version 2
+   panels (validation for the pilot and everything tuned, test for the declared run), and, with
+   ``oracle_rows``, the same chooser through true masks: the panel's ceiling for that chooser.
+
+Sources and expert labels are version 1's stages (transfer.build_sources, labels.label_scenes), for
+the arms asked only. Every step is resumable: a head, a chooser and a run's episodes on one panel
+are each written whole (a folder renamed into place, a file written atomically) and skipped when
+there. ``metrics.json``: each arm's success on the rare panels pooled and per panel, with 95 %
+hierarchical bootstrap intervals over seeds and layouts (transfer_stats), and the contrasts of
+:data:`CONTRASTS` present among the arms, paired by layout.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import yaml
+
+from scenegen.env.mixture import MixtureRecipe
+from scenegen.env.scenes import EnvScene
+from scenegen.experiment.closed_loop import Workers
+from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore
+from scenegen.experiment.transfer import TransferError, arm_data, build_sources, train_run
+from scenegen.experiment.transfer_config import TransferConfigV2, check_inputs
+from scenegen.policy.labels import current, label_scenes, scene_sha256
+from scenegen.policy.panels import panel_id
+from scenegen.store.batch import atomic_write
+
+# (first, second): first minus second, in the report's order (issue 45, point 6)
+CONTRASTS = (("C", "A+"), ("D", "A+"), ("D", "C"), ("D", "E"), ("D", "B"), ("A+", "A"))
+SIGHTS = ("head", "oracle")  # through the run's own head; through true masks (the ceiling)
+
+
+def arm_mixture(
+    arm: str, alpha: float, scenes: dict[str, list[EnvScene]], tags
+) -> tuple[list, MixtureRecipe]:
+    """The scenes a version 2 arm trains its head and chooser on, and the mixture it draws them by:
+    version 1's (transfer.arm_data), except C, whose extra layouts are more real data, drawn scene by
+    scene with A's weight (as the learning curves' rare-rich set) rather than a second term at alpha."""
+    if arm == "C":
+        a, extra = scenes["A"], scenes["C"]
+        return a + extra, MixtureRecipe.seed_loss({"A": len(a), "C": len(extra)}, {}, 0.0)
+    return arm_data(arm, alpha, scenes, tags)
+
+
+def runs_v2(config: TransferConfigV2) -> list[dict]:
+    """Every run: one per arm and training seed, at the configured alpha."""
+    return [
+        {"name": f"{arm}_s{seed}", "arm": arm, "alpha": config.alpha, "seed": seed, "inputs": "rgbd"}
+        for arm in config.arms
+        for seed in config.training.seeds
+    ]
+
+
+def generated_kinds(arms) -> tuple[str, ...]:
+    """The generated sources the arms need (B is re-weighted to D's rare share)."""
+    return tuple(k for k in ("D", "E") if k in arms or (k == "D" and "B" in arms))
+
+
+def train_head(run: dict, config: TransferConfigV2, data, recipe, folder: Path, frames: Path) -> Path:
+    """The run's retrieval head, trained into ``folder`` (skipped when it is there): the arm's scenes
+    ``data`` drawn by ``recipe``, their frames rendered into (or read from) ``frames``."""
+    import torch
+
+    from scenegen.experiment import retrieval_curves
+
+    if (folder / "config.json").is_file():
+        return folder
+    partial = folder.with_name(folder.name + ".partial")  # renamed into place when whole
+    shutil.rmtree(partial, ignore_errors=True)
+    job = retrieval_curves.CurveJob(config.head.design, run["arm"], len(data), run["seed"])
+    described = {"transfer_run": run["name"], "scenes": [scene_sha256(s) for s in data]}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the same bytes on any machine (as the curves' heads)
+    try:
+        retrieval_curves.train_head(job, data, partial, frames, config.head.steps(), recipe, described)
+    finally:
+        torch.set_num_threads(threads)
+    partial.rename(folder)
+    return folder
+
+
+def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
+    """The panels of the configured side (``panel_names``: those only), rare tags first, common last."""
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
+
+    panels = panel_scenes(load_panels_v2(config.panels), config.side)
+    names = config.panel_names or tuple(panels)
+    unknown = [n for n in names if n not in panels]
+    if unknown:
+        raise TransferError(f"panel_names: {unknown} not among the panels: {', '.join(panels)}")
+    return {name: panels[name][: config.per_panel] for name in names}
+
+
+def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after: str | None = None) -> dict:
+    """Run (or continue) version 2; returns the metrics. ``stop_after``: ``sources``, ``labels``,
+    ``training`` or ``evaluation:N`` (after N runs' evaluations), for tests of resume."""
+    from tqdm import tqdm
+
+    from scenegen.policy.network import PrimitivePolicy
+
+    check_inputs(config)
+    out, cache = Path(config.out), Path(config.cache)
+    out.mkdir(parents=True, exist_ok=True)
+    resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
+    if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
+        raise TransferError(
+            f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
+        )
+    atomic_write(out / "config.yaml", resolved.encode())
+    timings: dict[str, float] = {}
+    clock = [time.perf_counter()]
+
+    def lap(stage: str) -> bool:
+        timings[stage] = round(timings.get(stage, 0.0) + time.perf_counter() - clock[0], 1)
+        clock[0] = time.perf_counter()
+        return stop_after == stage
+
+    scenes, sources = build_sources(config, progress, generated_kinds(config.arms))
+    atomic_write(out / "sources.json", (json.dumps(sources, indent=1, sort_keys=True) + "\n").encode())
+    if lap("sources"):
+        return {}
+    data = {arm: arm_mixture(arm, config.alpha, scenes, config.tags) for arm in config.arms}
+    every = list({scene_sha256(s): s for arm in config.arms for s in data[arm][0]}.values())
+    store, reuse = config.label_store, config.reuse_labels
+    rows, _ = label_scenes(every, store, config.primitives, "rgbd", config.workers, progress, True, reuse)
+    labels: dict[str, dict[str, bool]] = {}
+    for row in rows:
+        if current(row):
+            labels.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    if lap("labels"):
+        return {}
+    observations = ObservationStore(cache / "observations")
+    all_runs = runs_v2(config)
+    trained: dict[str, tuple] = {}
+    with Workers(config.workers) as workers:
+        for run in tqdm(all_runs, desc="heads and choosers", disable=not progress):
+            arm_scenes, recipe = data[run["arm"]]
+            head = cache / "heads" / run["name"]
+            train_head(run, config, arm_scenes, recipe, head, cache / "frames")
+            folder = cache / "policies" / run["name"]
+            train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
+            trained[run["name"]] = (PrimitivePolicy.load(folder), head)
+            run["head_sha256"] = weights_sha256(head)
+            run["chooser_sha256"] = weights_sha256(folder)
+        if lap("training"):
+            return {}
+        panels = panels_v2(config)
+        paths = PathStore(config.path_store)
+        for number, run in enumerate(all_runs):
+            _evaluate_run(config, run, *trained[run["name"]], panels, paths, observations, workers, out)
+            if stop_after == f"evaluation:{number + 1}":
+                return {}
+        lap("evaluation")
+    metrics = metrics_v2(config, all_runs, panels, out)
+    metrics["timings"] = timings
+    atomic_write(out / "metrics.json", (json.dumps(metrics, indent=1, sort_keys=True) + "\n").encode())
+    return metrics
+
+
+def weights_sha256(folder: Path) -> str:
+    """The sha256 of a checkpoint's weight files (``*.safetensors``, by name): what a run resumed
+    elsewhere must find again (config.json records measured CPU-seconds, which differ)."""
+    import hashlib
+
+    from scenegen.core.files import sha256_file
+
+    lines = [f"{p.name} {sha256_file(p)}" for p in sorted(Path(folder).glob("*.safetensors"))]
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+
+
+def _evaluate_run(config, run, policy, head, panels, store, observations, workers, out: Path) -> None:
+    """One run's episodes on every panel, through its head and (``oracle_rows``) true masks; a
+    (panel, sight) whose file exists is skipped, each file written whole."""
+    from scenegen.experiment.closed_loop import evaluate_policies
+
+    for panel, scenes in panels.items():
+        for sight in SIGHTS if config.oracle_rows else SIGHTS[:1]:
+            target = out / "episodes" / panel / f"{run['name']}_{sight}.jsonl"
+            if target.exists():
+                continue
+            retrieval = head if sight == "head" else None
+            records = evaluate_policies(
+                {run["name"]: policy}, scenes, store, observations, NOMINAL, workers, None, retrieval
+            )
+            tagged = [  # one policy: the records follow the scenes
+                r | {"panel": panel, "sight": sight, "layout": panel_id(s)}
+                for r, s in zip(records, scenes, strict=True)
+            ]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(target, "".join(json.dumps(r, sort_keys=True) + "\n" for r in tagged).encode())
+
+
+def _grid(records: list[dict], runs: list[str], layouts: list[str]):
+    """(runs, layouts) 0/1 success; a layout is its panel id (two source tables share scene ids)."""
+    import numpy as np
+
+    index = {(r["policy"], r["layout"]): r["success"] for r in records}
+    missing = [(run, i) for run in runs for i in layouts if (run, i) not in index]
+    if missing:
+        raise TransferError(f"no episode of {missing[0][0]} on {missing[0][1]} ({len(missing)} missing)")
+    return np.array([[float(index[(run, i)]) for i in layouts] for run in runs])
+
+
+def read_episodes(out: Path, panel: str, run: str, sight: str) -> list[dict]:
+    path = Path(out) / "episodes" / panel / f"{run}_{sight}.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out: Path) -> dict:
+    """Per sight (the run's head; true masks): each arm's success on the rare panels pooled and on
+    each panel, and the contrasts of :data:`CONTRASTS` whose arms both ran, paired by layout; 95 %
+    hierarchical bootstrap intervals over seeds and layouts (``config.bootstrap`` replicates)."""
+    from scenegen.experiment.transfer_stats import difference, interval
+
+    rare = [p for p in panels if p != "common"]
+    groups = {"rare": rare, **{p: [p] for p in panels}}
+    arms = {arm: [r["name"] for r in all_runs if r["arm"] == arm] for arm in config.arms}
+    result: dict = {
+        "version": 2,
+        "side": config.side,
+        "panels": {p: [panel_id(s) for s in scenes] for p, scenes in panels.items()},
+        "runs": all_runs,
+    }
+    for sight in SIGHTS if config.oracle_rows else SIGHTS[:1]:
+        grids = {}
+        for group, members in groups.items():
+            for arm, names in arms.items():
+                records = [e for p in members for n in names for e in read_episodes(out, p, n, sight)]
+                ids = [panel_id(s) for p in members for s in panels[p]]
+                grids[(group, arm)] = _grid(records, names, ids)
+        rates = {
+            group: {arm: interval(grids[(group, arm)], config.bootstrap, seed=i) for arm in arms}
+            for i, group in enumerate(groups)
+        }
+        contrasts = {
+            group: {
+                f"{a} - {b}": difference(grids[(group, a)], grids[(group, b)], config.bootstrap, seed=i)
+                for a, b in CONTRASTS
+                if a in arms and b in arms
+            }
+            for i, group in enumerate(groups)
+        }
+        per_seed = {
+            group: {
+                name: round(float(grids[(group, arm)][k].mean()), 4)
+                for arm, names in arms.items()
+                for k, name in enumerate(names)
+            }
+            for group in groups
+        }
+        result[sight] = {"rates": rates, "contrasts": contrasts, "per_seed": per_seed}
+    return result
