@@ -131,7 +131,8 @@ def _scene_job(job: tuple) -> tuple[list[tuple], set[str], list[int], list[tuple
         listed |= files
         if record is None or sampled == frozenset():
             continue
-        cameras.append(len(record.get("cameras") or []))
+        listed_cameras = record.get("cameras")
+        cameras.append(len(listed_cameras) if isinstance(listed_cameras, list) else 0)
         if sampled is None or row["scene_id"] in sampled:
             measured = _measure(findings, where, batch, row["scene_id"], record)
             if measured is not None:
@@ -145,7 +146,7 @@ def _measure(findings, where: str, batch: Path, scene_id: str, record: dict):
 
     try:
         return scene_statistics(record, batch / scene_id, batch)[1]
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:  # a damaged camera list
         findings.violation(f"{where}: {scene_id}", "realism", f"its images: {exc}"[:300])
         return None
 
@@ -185,7 +186,10 @@ def compare_image_sample(audit, where: str, recorded: RealismCheck, sample: Real
     if recorded.status != status:
         audit.violation(at, "realism", f"status {recorded.status}, its value gives {status}")
     reference, _ = load_reference_image_stats(REFERENCE_IMAGES)
-    estimate, error = sampled_smd([r for _, r in images.rows], images.scenes, reference)
+    try:
+        estimate, error = sampled_smd([r for _, r in images.rows], images.scenes, reference)
+    except ValueError as exc:  # too few of the sampled scenes' images could be read
+        return audit.violation(at, "realism", f"the sample cannot judge the check: {exc}")
     t = float(stats.t.ppf(1 - SAMPLE_TAIL / 2, len(images.rows) - 1))
     error = np.maximum(error, SAMPLE_ERROR_FLOOR)
     names = list(sample.details["per_stat"])

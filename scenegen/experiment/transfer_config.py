@@ -143,8 +143,9 @@ class TransferConfigV2(TransferConfig):
     """Version 2 (issue 45; docs/transfer.md): each arm and seed trains its own retrieval head and its
     chooser through that head's masks, and is evaluated through it on one ``side`` of the version 2
     panels (``panel_names``: which of its panels, None: all; ``per_panel``: the first N layouts of
-    each, for a tiny run); ``oracle_rows``: each chooser also
-    through true masks, the panel's ceiling. ``arms``: the arms run (the pilot: A+ and C)."""
+    each, for a tiny run); ``oracle_rows``: each chooser also through true masks, the panel's
+    ceiling. ``arms``: the arms run (the pilot: A+ and C). Version 1's keys that version 2 does not
+    use yet (``V1_ONLY``) are refused unless at their version 2 default, so none is silently ignored."""
 
     version: Literal[2] = 2
     panels: Path = PANELS_V2_FILE
@@ -156,6 +157,8 @@ class TransferConfigV2(TransferConfig):
     oracle_rows: bool = True
     alpha_sweep: tuple[float, ...] = ()
     state_ablation: tuple[str, ...] = ()
+    perturbation: Perturbation | None = None
+    manifest: Path | None = None
 
     @field_validator("arms")
     @classmethod
@@ -163,7 +166,24 @@ class TransferConfigV2(TransferConfig):
         unknown = [a for a in arms if a not in ARMS]
         if unknown or not arms:
             raise ValueError(f"{unknown or 'none'}: arms are {', '.join(ARMS)}")
+        if len(set(arms)) < len(arms):
+            raise ValueError(f"{list(arms)}: an arm named twice would count twice")
         return arms
+
+    @model_validator(mode="after")
+    def _version_2_keys(self):
+        if len(set(self.training.seeds)) < len(self.training.seeds):
+            raise ValueError(
+                f"training.seeds {list(self.training.seeds)}: a seed named twice would count twice"
+            )
+        used = [k for k in V1_ONLY if getattr(self, k) != TransferConfigV2.model_fields[k].default]
+        if used:
+            raise ValueError(f"{', '.join(used)}: not used by version 2 yet; remove them")
+        return self
+
+
+# version 1's keys that version 2 does not use (yet): refused when set
+V1_ONLY = ("retrieval", "rare_per_tag", "common", "alpha_sweep", "state_ablation", "perturbation", "manifest")
 
 
 def load_transfer_config(path: Path | None, overrides: dict | None = None) -> TransferConfig:

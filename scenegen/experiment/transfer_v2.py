@@ -148,9 +148,10 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     with Workers(config.workers) as workers:
         for run in tqdm(all_runs, desc="heads and choosers", disable=not progress):
             arm_scenes, recipe = data[run["arm"]]
-            head = cache / "heads" / run["name"]
+            run["parts"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe)}"
+            head = cache / "heads" / run["parts"]
             train_head(run, config, arm_scenes, recipe, head, cache / "frames")
-            folder = cache / "policies" / run["name"]
+            folder = cache / "policies" / run["parts"]
             train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
             trained[run["name"]] = (PrimitivePolicy.load(folder), head)
             run["head_sha256"] = weights_sha256(head)
@@ -168,6 +169,24 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     metrics["timings"] = timings
     atomic_write(out / "metrics.json", (json.dumps(metrics, indent=1, sort_keys=True) + "\n").encode())
     return metrics
+
+
+def parts_digest(run: dict, config: TransferConfigV2, data, recipe: MixtureRecipe) -> str:
+    """What decides a run's head and chooser (its scenes, mixture, seed, alpha, primitives, the head's
+    and the training's settings), digested: their cache folders are named by it, so a cache shared by
+    two configurations (the pilot's and the declared run's) never hands one the other's parts."""
+    import hashlib
+
+    decided = {
+        "scenes": [scene_sha256(s) for s in data],
+        "recipe": recipe.model_dump(mode="json"),
+        "seed": run["seed"],
+        "alpha": run["alpha"],
+        "primitives": list(config.primitives),
+        "head": config.head.model_dump(mode="json"),
+        "training": config.training.model_dump(mode="json"),
+    }
+    return hashlib.sha256(json.dumps(decided, sort_keys=True).encode()).hexdigest()[:12]
 
 
 def weights_sha256(folder: Path) -> str:
@@ -226,7 +245,7 @@ def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out
     from scenegen.experiment.transfer_stats import difference, interval
 
     rare = [p for p in panels if p != "common"]
-    groups = {"rare": rare, **{p: [p] for p in panels}}
+    groups = {**({"rare": rare} if rare else {}), **{p: [p] for p in panels}}  # "rare": the rare pooled
     arms = {arm: [r["name"] for r in all_runs if r["arm"] == arm] for arm in config.arms}
     result: dict = {
         "version": 2,

@@ -85,3 +85,13 @@ def test_a_sample_too_small_to_judge_is_refused_in_one_line(batch: Path, capsys,
     code = main(["audit", str(batch / "manifest.yaml"), "--image-sample", value])
     err = capsys.readouterr().err.strip()
     assert code == 2 and "--image-sample" in err and "'all'" in err and "\n" not in err
+
+
+def test_unreadable_sampled_images_are_violations_not_a_crash(batch: Path, capsys):
+    for image in batch.glob("scene_*/front_rgb.png"):
+        image.write_bytes(b"not a png")
+    code, report = audit(batch, capsys, "--image-sample", "3")
+    assert code == TAMPERED
+    checks = {v["check"] for v in report["violations"]}
+    assert {"checksum", "realism"} <= checks
+    assert any("not a readable image" in v["message"] for v in report["violations"])

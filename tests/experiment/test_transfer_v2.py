@@ -48,9 +48,10 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
     cache, out = Path(config.cache), Path(config.out)
     names = [r["name"] for r in runs_v2(config)]
     assert names == ["A+_s0", "A+_s1", "C_s0", "C_s1"]
-    for name in names:
-        assert (cache / "heads" / name / "separator.safetensors").is_file()
-        assert (cache / "policies" / name / "model.safetensors").is_file()
+    for run in metrics["runs"]:  # cache folders named by the run and a digest of what decides it
+        assert run["parts"].startswith(run["name"] + "-")
+        assert (cache / "heads" / run["parts"] / "separator.safetensors").is_file()
+        assert (cache / "policies" / run["parts"] / "model.safetensors").is_file()
     heads = {r["head_sha256"] for r in metrics["runs"]}
     assert len(heads) == len(names), "every arm and seed has a head of its own"
     for panel in ("toppled", "common"):
@@ -72,7 +73,7 @@ def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
     config, metrics, _ = tiny_run
     from scenegen.experiment.sequences import NOMINAL, sight
 
-    heads = [Path(config.cache) / "heads" / r["name"] for r in metrics["runs"]]
+    heads = [Path(config.cache) / "heads" / r["parts"] for r in metrics["runs"]]
     assert len({sight(h, NOMINAL) for h in heads}) == len(heads)
 
 
@@ -103,7 +104,14 @@ def test_c_is_more_real_data_in_version_2():
 
 @pytest.mark.parametrize(
     "change, says",
-    [({"arms": ["A+", "F"]}, "arms"), ({"side": "train"}, "side"), ({"version": 3}, "version")],
+    [
+        ({"arms": ["A+", "F"]}, "arms"),
+        ({"arms": ["C", "C"]}, "twice"),
+        ({"training": {"seeds": [0, 0]}}, "twice"),
+        ({"side": "train"}, "side"),
+        ({"version": 3}, "version"),
+        ({"perturbation": {"name": "dim_light"}}, "not used by version 2"),
+    ],
 )
 def test_a_bad_version_2_configuration_is_one_line_naming_the_key(change, says):
     import yaml
