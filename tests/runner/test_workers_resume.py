@@ -131,6 +131,10 @@ def start_and_kill(cmd: list[str], ready, timeout: float = 180.0) -> dict:
             except ProcessLookupError:
                 pass
     proc.wait(timeout=30)
+    if not finished_first and proc.returncode == 0:
+        # it ended on its own between the last poll and the kill (the command exits at once once its
+        # batch is written: cli.entry): the kill found a finished process
+        finished_first = True
     if not finished_first:
         assert proc.returncode == -signal.SIGKILL, proc.returncode
     deadline = time.monotonic() + 15
