@@ -47,7 +47,26 @@ class TransferError(ValueError):
     """A transfer run that cannot go on; the message names the file or key and what to do."""
 
 
-def _write_json(path: Path, value) -> None:
+def claim_out(out: Path, resolved: str) -> None:
+    """Write the resolved configuration into ``out``, or refuse (TransferError) when ``out`` holds
+    another configuration's run."""
+    if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
+        raise TransferError(
+            f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
+        )
+    atomic_write(out / "config.yaml", resolved.encode())
+
+
+def expert_bits(rows: list[dict]) -> dict[str, dict[str, bool]]:
+    """Per scene (sha256), each primitive's success from the label rows of the current rules."""
+    labels: dict[str, dict[str, bool]] = {}
+    for row in rows:
+        if current(row):
+            labels.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    return labels
+
+
+def write_json(path: Path, value) -> None:
     atomic_write(path, (json.dumps(value, indent=1, sort_keys=True) + "\n").encode())
 
 
@@ -265,11 +284,7 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     # (nor does an unset retrieval head: a version 1 configuration resolves as it did)
     ignored = {"workers"} | ({"retrieval"} if config.retrieval is None else set())
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude=ignored), sort_keys=False)
-    if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
-        raise TransferError(
-            f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
-        )
-    atomic_write(out / "config.yaml", resolved.encode())
+    claim_out(out, resolved)
     timings: dict[str, float] = {}
     clock = time.perf_counter()
 
@@ -280,7 +295,7 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
         return stop_after == stage
 
     scenes, sources = build_sources(config, progress)
-    _write_json(out / "sources.json", sources)
+    write_json(out / "sources.json", sources)
     if lap("sources"):
         return {}
     every = [s for name in ("A", "C", "D", "E", "A+") for s in scenes[name]]  # most informative first
@@ -295,10 +310,7 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
         config.reuse_labels,
     )
 
-    labels: dict[str, dict[str, bool]] = {}
-    for row in rows:
-        if current(row):
-            labels.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    labels = expert_bits(rows)
     if lap("labels"):
         return {}
     observations = ObservationStore(cache / "observations")

@@ -32,9 +32,17 @@ from scenegen.env.mixture import MixtureRecipe
 from scenegen.env.scenes import EnvScene
 from scenegen.experiment.closed_loop import Workers
 from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore
-from scenegen.experiment.transfer import TransferError, arm_data, build_sources, train_run
+from scenegen.experiment.transfer import (
+    TransferError,
+    arm_data,
+    build_sources,
+    claim_out,
+    expert_bits,
+    train_run,
+    write_json,
+)
 from scenegen.experiment.transfer_config import TransferConfigV2, check_inputs
-from scenegen.policy.labels import current, label_scenes, scene_sha256
+from scenegen.policy.labels import label_scenes, scene_sha256
 from scenegen.policy.panels import panel_id
 from scenegen.store.batch import atomic_write
 
@@ -115,11 +123,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
-    if (out / "config.yaml").exists() and (out / "config.yaml").read_text() != resolved:
-        raise TransferError(
-            f"{out}: holds another configuration's run (config.yaml differs); use another out or delete it"
-        )
-    atomic_write(out / "config.yaml", resolved.encode())
+    claim_out(out, resolved)
     timings: dict[str, float] = {}
     clock = [time.perf_counter()]
 
@@ -129,17 +133,14 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         return stop_after == stage
 
     scenes, sources = build_sources(config, progress, generated_kinds(config.arms))
-    atomic_write(out / "sources.json", (json.dumps(sources, indent=1, sort_keys=True) + "\n").encode())
+    write_json(out / "sources.json", sources)
     if lap("sources"):
         return {}
     data = {arm: arm_mixture(arm, config.alpha, scenes, config.tags) for arm in config.arms}
     every = list({scene_sha256(s): s for arm in config.arms for s in data[arm][0]}.values())
     store, reuse = config.label_store, config.reuse_labels
     rows, _ = label_scenes(every, store, config.primitives, "rgbd", config.workers, progress, True, reuse)
-    labels: dict[str, dict[str, bool]] = {}
-    for row in rows:
-        if current(row):
-            labels.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
+    labels = expert_bits(rows)
     if lap("labels"):
         return {}
     observations = ObservationStore(cache / "observations")
@@ -167,7 +168,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         lap("evaluation")
     metrics = metrics_v2(config, all_runs, panels, out)
     metrics["timings"] = timings
-    atomic_write(out / "metrics.json", (json.dumps(metrics, indent=1, sort_keys=True) + "\n").encode())
+    write_json(out / "metrics.json", metrics)
     return metrics
 
 
