@@ -182,16 +182,17 @@ def panels(args: argparse.Namespace) -> int:
 
 
 def _v2_summary(metrics: dict) -> str:
-    """Version 2's headline lines: per sight, each arm's rare-panel success and the contrasts."""
+    """Version 2's headline lines: per condition (sight, shift), each arm's rare-panel success and
+    the contrasts."""
     lines = [f"transfer version 2, {metrics['side']} side"]
-    for sight in ("head", "oracle"):
-        if sight not in metrics:
+    for sight, block in metrics.items():
+        if not (isinstance(block, dict) and "rare" in block.get("rates", {})):
             continue
         lines.append(f"{sight}: rare panels pooled")
         fmt = lambda c: f"{c['mean']:+.3f} [{c['low']:+.3f}, {c['high']:+.3f}]"  # noqa: E731
-        for arm, c in metrics[sight]["rates"]["rare"].items():
+        for arm, c in block["rates"]["rare"].items():
             lines.append(f"  {arm}: {fmt(c)} ({c['seeds']} seeds x {c['scenes']} layouts)")
-        for name, c in metrics[sight]["contrasts"]["rare"].items():
+        for name, c in block["contrasts"]["rare"].items():
             lines.append(f"  {name}: {fmt(c)}")
     return "\n".join(lines)
 

@@ -89,6 +89,9 @@ class SceneEnv(ManipulationEnv):
             raise ValueError(f"camera_size {self.camera_size}: must be positive and at most {MAX_SIZE}")
         self._robot_spec: mujoco.MjSpec | None = None
         self._renderer: SceneRenderer | None = None
+        # (sensor, decision point): depth frames as that sensor returns them there (None: exact;
+        # perception/sensor.py); cleared by every reset, set by the caller per decision point
+        self.depth_sensor: tuple | None = None
         self._check_cameras(scene)
         super().__init__(
             robots="Panda",
@@ -126,6 +129,7 @@ class SceneEnv(ManipulationEnv):
         # the task's request ("retrieve the mug"): what a learned perception is told to look for
         self.requested_category = target_category(scene)
         self.hard_reset = scene != self._built_for
+        self.depth_sensor = None
         try:
             return self.reset()
         finally:
@@ -210,7 +214,7 @@ class SceneEnv(ManipulationEnv):
         pixels, as a self-filter computes them from its known geometry and joint angles (here the
         renderer's robot instance: the visible pixels of the robot's own meshes). ``image=False``:
         no ``<cam>_image`` (its colour pass is not drawn), for a caller that reads depth and masks
-        only."""
+        only. With ``depth_sensor`` set, the depth is that sensor's at that decision point."""
         if self._renderer is None:  # one GL context per environment, made on first use
             self._renderer = SceneRenderer()
         model, data = self.sim.model._model, self.sim.data._data
@@ -227,7 +231,10 @@ class SceneEnv(ManipulationEnv):
         for name, f in zip(self.cameras, frames, strict=True):
             if image:
                 out[f"{name}_image"] = f.rgb
-            out[f"{name}_depth"] = f.depth[..., None]
+            depth = f.depth
+            if self.depth_sensor is not None:
+                depth = self.depth_sensor[0].corrupt(depth, self.depth_sensor[1], name)
+            out[f"{name}_depth"] = depth[..., None]
             if segmentation:
                 out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]
             else:

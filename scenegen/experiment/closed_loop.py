@@ -117,6 +117,7 @@ def simulate(
     recorder = EpisodeRecorder(env, "path", observation_kind="rgbd")
     sha, rows, tokens = scene_sha256(scene), [], []
     again: list[dict] = []  # the re-observations inside the attempt under way
+    name = ""
 
     def look_again():
         # the store's record of the state looked at (read before the decision: the head and the
@@ -124,6 +125,7 @@ def simulate(
         # integration: keep that state
         seen = data.qpos.copy()
         mujoco.mj_integratePos(env.sim.model._model, seen, data.qvel, -env.sim.model._model.opt.timestep)
+        variant.sense(env, again_point(sha, tokens, name, len(again)))
         obs, view = look(env, perception, image=False)
         plan = None if view is None else plan_top_grasp(view)
         again.append({"qpos": seen.tolist(), "plan": plan_digest(plan)})
@@ -131,6 +133,7 @@ def simulate(
 
     for k, name in enumerate(prefix):
         again.clear()
+        variant.sense(env, path_key(sha, tokens))  # the decision point, as observe() sees it
         outcome, params = run_primitive(  # the record is read for its trace: no colour images
             env, name, recorder, episode=episode, perception=perception, look=look_again, images=False
         )
@@ -165,8 +168,10 @@ def observe(
     variant: Variant,
     inputs: str,
     retrieval: Path | None = None,
+    point: str = "",
 ) -> tuple[np.ndarray, dict]:
-    """A decision point of ``scene`` (as ``variant`` shows it) at ``qpos`` (None: the settled state):
+    """A decision point of ``scene`` (``point``: its path_key, which seeds a variant's sensor) at
+    ``qpos`` (None: the settled state), as ``variant`` shows it:
     the policy input (``rgbd``: the front camera crop, its mask the ``retrieval`` head's prediction
     or the oracle's; ``state``: the state features) and what the decision needs besides: each
     primitive's plan token from what the planners see there, the pixels of the target's mask
@@ -180,6 +185,7 @@ def observe(
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene))
     _state(env, qpos)
+    variant.sense(env, point)
     obs, view = look(env, perception)
     plans = {
         name: decision_token(name, None if view is None else p.plan(view)) for name, p in PRIMITIVES.items()
@@ -195,8 +201,11 @@ def observe(
     return value, meta
 
 
-def regrasp_plan(scene: EnvScene, qpos: Sequence[float], variant: Variant, retrieval: Path | None) -> str:
-    """The plan a re-observation at ``qpos`` makes through ``retrieval`` (None: the oracle)."""
+def regrasp_plan(
+    scene: EnvScene, qpos: Sequence[float], variant: Variant, retrieval: Path | None, point: str = ""
+) -> str:
+    """The plan a re-observation at ``qpos`` makes through ``retrieval`` (None: the oracle);
+    ``point``: the re-observation's (:func:`again_point`), which seeds a variant's sensor."""
     from scenegen.manipulation.primitives import plan_top_grasp
     from scenegen.perception.observation import observe as look
 
@@ -204,8 +213,15 @@ def regrasp_plan(scene: EnvScene, qpos: Sequence[float], variant: Variant, retri
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     _state(env, qpos)
+    variant.sense(env, point)
     _, view = look(env, perception)
     return plan_digest(None if view is None else plan_top_grasp(view))
+
+
+def again_point(sha: str, tokens: Sequence[str], primitive: str, number: int) -> str:
+    """The decision point of the ``number``-th re-observation inside ``primitive``, run after
+    ``tokens``: what seeds a variant's sensor there (the decision's own is ``path_key``)."""
+    return f"{path_key(sha, tokens)}|{primitive}|again{number}"
 
 
 def _job(job: tuple) -> tuple:
@@ -216,9 +232,9 @@ def _job(job: tuple) -> tuple:
     began = time.process_time()
     if kind == "simulate":  # (prefix, retrieval, variant)
         result = simulate(scene, *arg)
-    elif kind == "regrasp":  # (qpos, variant, key, retrieval)
-        qpos, variant, key, retrieval = arg
-        result = (key, regrasp_plan(scene, qpos, variant, retrieval))
+    elif kind == "regrasp":  # (qpos, variant, key, retrieval, point)
+        qpos, variant, key, *rest = arg
+        result = (key, regrasp_plan(scene, qpos, variant, *rest))
     else:
         qpos, variant, inputs, key, *retrieval = arg
         result = (key, *observe(scene, qpos, variant, inputs, *retrieval))
@@ -304,7 +320,8 @@ def _observations(runs, inputs_of, observations, variant, seen, retrieval, worke
         key = ObservationStore.key(r.sha, r.tokens, variant, inputs, seen)
         if observations.meta(key) is None or observations.get(key) is None:
             qpos = r.entry["qpos"] if r.entry else None
-            wanted[key] = ("observe", r.scene, (qpos, variant, inputs, key, retrieval))
+            point = path_key(r.sha, r.tokens)
+            wanted[key] = ("observe", r.scene, (qpos, variant, inputs, key, retrieval, point))
     for kind, (key, value, meta), seconds in workers.map(list(wanted.values())):
         observations.put(key, value, meta)
         cost.add(kind, seconds)
@@ -322,7 +339,9 @@ def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost,
         if found and all(row["regrasp"] is not None for row in found):
             key = _regrasp_key(r, decision, variant, seen)
             if observations.meta(key) is None:
-                checks[key] = ("regrasp", r.scene, (found[0]["regrasp"]["qpos"], variant, key, retrieval))
+                point = again_point(r.sha, r.tokens, r.prefix[-1], 0)
+                job = (found[0]["regrasp"]["qpos"], variant, key, retrieval, point)
+                checks[key] = ("regrasp", r.scene, job)
     for kind, (key, plan), seconds in workers.map(list(checks.values())):
         observations.put(key, None, {"plan": plan})
         cost.add(kind, seconds)

@@ -35,13 +35,24 @@ from scenegen.store.batch import atomic_write, recover_jsonl
 
 @dataclass(frozen=True)
 class Variant:
-    """What the cameras see: ``nominal``, or a shift of the scene's lighting (every light's intensity
-    and the ambient term scaled by ``light_scale``). Lighting changes only the colour frames, which
-    the policy reads; the planners read depth and the instance mask, so the physics of a sequence is
-    the same under every variant and one PathStore serves them all."""
+    """What the cameras see: ``nominal``, a shift of the scene's lighting (every light's intensity
+    and the ambient term scaled by ``light_scale``), and/or a depth ``sensor``'s errors (a name of
+    ``perception.sensor.SENSORS``; the noise drawn per decision point and camera, :meth:`sense`).
+    Lighting changes only the colour frames (a head's predictions, and the policy's input); a sensor
+    changes the depth every planner reads, the oracle's too. The store keys a sequence by the plans
+    executed, so one PathStore serves every variant all the same."""
 
     name: str = "nominal"
     light_scale: float = 1.0
+    sensor: str | None = None
+
+    def sense(self, env, point: str) -> None:
+        """Set ``env``'s depth to this variant's sensor at the decision point ``point`` (after a
+        reset, which clears it; a no-op without a sensor)."""
+        if self.sensor is not None:
+            from scenegen.perception.sensor import SENSORS
+
+            env.depth_sensor = (SENSORS[self.sensor], point)
 
     def apply(self, scene: EnvScene) -> EnvScene:
         if self.light_scale == 1.0:
@@ -175,7 +186,8 @@ class ObservationStore:
 
     @staticmethod
     def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
-        text = f"{path_key(sha, tokens)}|{seen}|{variant.name}:{variant.light_scale}|{inputs}"
+        shown = f"{variant.name}:{variant.light_scale}" + (f":{variant.sensor}" if variant.sensor else "")
+        text = f"{path_key(sha, tokens)}|{seen}|{shown}|{inputs}"
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 
     def get(self, key: str) -> np.ndarray | None:

@@ -139,22 +139,60 @@ class HeadSettings(_Strict):
         return {k: v for k, v in counts.items() if v is not None}
 
 
+class Shift(_Strict):
+    """One condition the perturbed arms are also evaluated under (version 2): the lights scaled by
+    ``light_scale`` and/or a depth ``sensor``'s errors (perception/sensor.py), at evaluation only."""
+
+    name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
+    light_scale: float = Field(1.0, gt=0, le=3)
+    sensor: Literal["structured_light"] | None = None
+
+
+class Perturbations(_Strict):
+    """Version 2: the ``shifts`` every run of ``arms`` whose seed is in ``seeds`` (None: every
+    training seed) is also evaluated under, on the rare panels, through its head and (with
+    ``oracle_rows``) true masks."""
+
+    shifts: tuple[Shift, ...] = (
+        Shift(name="dim_light", light_scale=0.35),
+        Shift(name="depth_noise", sensor="structured_light"),
+    )
+    arms: tuple[str, ...] = ("A+", "C", "D")
+    seeds: tuple[int, ...] | None = None
+
+    @field_validator("shifts")
+    @classmethod
+    def _named_once(cls, shifts):
+        names = [s.name for s in shifts]
+        if len(set(names)) < len(names) or "nominal" in names:
+            raise ValueError(f"{names}: each shift needs its own name, not nominal")
+        return shifts
+
+
 class TransferConfigV2(TransferConfig):
     """Version 2 (issue 45; docs/transfer.md): each arm and seed trains its own retrieval head and its
     chooser through that head's masks, and is evaluated through it on one ``side`` of the version 2
     panels (``panel_names``: which of its panels, None: all; ``per_panel``: the first N layouts of
-    each, for a tiny run); ``oracle_rows``: each chooser also through true masks, the panel's
-    ceiling. ``arms``: the arms run (the pilot: A+ and C). Version 1's keys that version 2 does not
-    use yet (``V1_ONLY``) are refused unless at their version 2 default, so none is silently ignored."""
+    each, for a tiny run; ``panel_sizes``: the first N of the panels named, the cut order's
+    "common panel to its first 50"); ``oracle_rows``: each chooser also through true masks, the
+    panel's ceiling (``oracle_seeds``: only the runs of these seeds, None: all). ``arms``: the arms
+    run (the pilot: A+ and C); ``arm_seeds``: fewer training seeds for the arms named (the cut
+    order's "A, B and E to 3 seeds"); ``perturbations``: the shifts evaluated (None: none). Version
+    1's keys that version 2 does not use (``V1_ONLY``) are refused unless at their version 2
+    default, so none is silently ignored."""
 
     version: Literal[2] = 2
     panels: Path = PANELS_V2_FILE
     side: Literal["validation", "test"] = "validation"
     panel_names: tuple[str, ...] | None = None
     per_panel: int | None = Field(None, ge=1)  # the first N layouts of each panel (None: all)
+    panel_sizes: dict[str, int] = {}
     arms: tuple[str, ...] = ARMS
+    arm_seeds: dict[str, tuple[int, ...]] = {}
     head: HeadSettings = HeadSettings()
     oracle_rows: bool = True
+    oracle_seeds: tuple[int, ...] | None = None
+    perturbations: Perturbations | None = None
     alpha_sweep: tuple[float, ...] = ()
     state_ablation: tuple[str, ...] = ()
     perturbation: Perturbation | None = None
@@ -176,10 +214,29 @@ class TransferConfigV2(TransferConfig):
             raise ValueError(
                 f"training.seeds {list(self.training.seeds)}: a seed named twice would count twice"
             )
+        seeds = set(self.training.seeds)
+        for key, value in (
+            *((f"arm_seeds.{a}", v) for a, v in self.arm_seeds.items()),
+            ("oracle_seeds", self.oracle_seeds or ()),
+            ("perturbations.seeds", (self.perturbations and self.perturbations.seeds) or ()),
+        ):
+            if not set(value) <= seeds:
+                raise ValueError(f"{key}: {list(value)}: seeds of training.seeds {sorted(seeds)} only")
+        for key, arms in (("arm_seeds", self.arm_seeds), ("perturbations.arms", self.perturbed_arms())):
+            if not set(arms) <= set(self.arms):
+                raise ValueError(f"{key}: {sorted(set(arms) - set(self.arms))} not among arms")
+        if any(n < 1 for n in self.panel_sizes.values()):
+            raise ValueError(f"panel_sizes {self.panel_sizes}: at least 1 layout each")
         used = [k for k in V1_ONLY if getattr(self, k) != TransferConfigV2.model_fields[k].default]
         if used:
             raise ValueError(f"{', '.join(used)}: not used by version 2 yet; remove them")
         return self
+
+    def seeds_of(self, arm: str) -> tuple[int, ...]:
+        return self.arm_seeds.get(arm, self.training.seeds)
+
+    def perturbed_arms(self) -> tuple[str, ...]:
+        return self.perturbations.arms if self.perturbations else ()
 
 
 # version 1's keys that version 2 does not use (yet): refused when set

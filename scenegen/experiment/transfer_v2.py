@@ -21,6 +21,7 @@ hierarchical bootstrap intervals over seeds and layouts (transfer_stats), and th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import time
@@ -31,7 +32,7 @@ import yaml
 from scenegen.env.mixture import MixtureRecipe
 from scenegen.env.scenes import EnvScene
 from scenegen.experiment.closed_loop import Workers
-from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore
+from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore, Variant
 from scenegen.experiment.transfer import (
     TransferError,
     arm_data,
@@ -64,12 +65,28 @@ def arm_mixture(
 
 
 def runs_v2(config: TransferConfigV2) -> list[dict]:
-    """Every run: one per arm and training seed, at the configured alpha."""
+    """Every run: one per arm and training seed (``arm_seeds``: fewer for an arm), at the
+    configured alpha."""
     return [
         {"name": f"{arm}_s{seed}", "arm": arm, "alpha": config.alpha, "seed": seed, "inputs": "rgbd"}
         for arm in config.arms
-        for seed in config.training.seeds
+        for seed in config.seeds_of(arm)
     ]
+
+
+def conditions(config: TransferConfigV2, run: dict, panel: str) -> list[tuple[str, Variant]]:
+    """What ``run`` is evaluated under on ``panel``: (condition, variant) pairs, a condition being
+    the sight (``head``; ``oracle``, the chooser through true masks) and, under a shift, ``@name``."""
+    oracle = config.oracle_rows and (config.oracle_seeds is None or run["seed"] in config.oracle_seeds)
+    sights = SIGHTS if oracle else SIGHTS[:1]
+    out = [(sight, NOMINAL) for sight in sights]
+    shifts = config.perturbations
+    if shifts and panel != "common" and run["arm"] in shifts.arms:
+        if shifts.seeds is None or run["seed"] in shifts.seeds:
+            for shift in shifts.shifts:
+                variant = Variant(shift.name, shift.light_scale, shift.sensor)
+                out += [(f"{sight}@{shift.name}", variant) for sight in sights]
+    return out
 
 
 def generated_kinds(arms) -> tuple[str, ...]:
@@ -150,10 +167,13 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         for run in tqdm(all_runs, desc="heads and choosers", disable=not progress):
             arm_scenes, recipe = data[run["arm"]]
             run["parts"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe)}"
-            head = cache / "heads" / run["parts"]
-            train_head(run, config, arm_scenes, recipe, head, cache / "frames")
+            run["head"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe, head=True)}"
+            head = cache / "heads" / run["head"]
             folder = cache / "policies" / run["parts"]
-            train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
+            with _spent(out, run, "head", head):
+                train_head(run, config, arm_scenes, recipe, head, cache / "frames")
+            with _spent(out, run, "chooser", folder):
+                train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
             trained[run["name"]] = (PrimitivePolicy.load(folder), head)
             run["head_sha256"] = weights_sha256(head)
             run["chooser_sha256"] = weights_sha256(folder)
@@ -172,21 +192,38 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     return metrics
 
 
-def parts_digest(run: dict, config: TransferConfigV2, data, recipe: MixtureRecipe) -> str:
-    """What decides a run's head and chooser (its scenes, mixture, seed, alpha, primitives, the head's
-    and the training's settings), digested: their cache folders are named by it, so a cache shared by
-    two configurations (the pilot's and the declared run's) never hands one the other's parts."""
+@contextlib.contextmanager
+def _spent(out: Path, run: dict, stage: str, folder: Path):
+    """Append the wall seconds of training ``stage`` of ``run`` into ``folder`` to ``costs.jsonl``
+    (nothing when the folder was there: a cached part costs nothing)."""
+    cached, began = (folder / "config.json").is_file(), time.perf_counter()
+    yield
+    if not cached:
+        spent = {"run": run["name"], "stage": stage, "wall_s": round(time.perf_counter() - began, 1)}
+        with open(out / "costs.jsonl", "a", encoding="utf-8") as log:
+            log.write(json.dumps(spent, sort_keys=True) + "\n")
+
+
+def parts_digest(run: dict, config: TransferConfigV2, data, recipe: MixtureRecipe, head: bool = False) -> str:
+    """What decides a run's head and chooser (its scenes, mixture, seed, the head's settings; for the
+    chooser also alpha, the primitives and the training's settings), digested; ``head``: what decides
+    the head alone. Their cache folders are named by it, so a cache shared by two configurations (a
+    pilot's and the declared run's) never hands one the other's parts, and two that differ in the
+    chooser's training only share their heads."""
     import hashlib
 
     decided = {
         "scenes": [scene_sha256(s) for s in data],
         "recipe": recipe.model_dump(mode="json"),
         "seed": run["seed"],
-        "alpha": run["alpha"],
-        "primitives": list(config.primitives),
         "head": config.head.model_dump(mode="json"),
-        "training": config.training.model_dump(mode="json"),
     }
+    if not head:
+        decided |= {
+            "alpha": run["alpha"],
+            "primitives": list(config.primitives),
+            "training": config.training.model_dump(mode="json"),
+        }
     return hashlib.sha256(json.dumps(decided, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -202,21 +239,28 @@ def weights_sha256(folder: Path) -> str:
 
 
 def _evaluate_run(config, run, policy, head, panels, store, observations, workers, out: Path) -> None:
-    """One run's episodes on every panel, through its head and (``oracle_rows``) true masks; a
-    (panel, sight) whose file exists is skipped, each file written whole."""
-    from scenegen.experiment.closed_loop import evaluate_policies
+    """One run's episodes on every panel under each of its :func:`conditions`; a (panel, condition)
+    whose file exists is skipped, each file written whole, and what it cost (closed_loop.Cost: CPU
+    per kind of job, attempts served by the sequence store) appended to ``costs.jsonl``, which no
+    figure of ``metrics.json`` reads (CPU differs between machines; the episodes do not)."""
+    from scenegen.experiment.closed_loop import Cost, evaluate_policies
 
     for panel, scenes in panels.items():
-        for sight in SIGHTS if config.oracle_rows else SIGHTS[:1]:
-            target = out / "episodes" / panel / f"{run['name']}_{sight}.jsonl"
+        for condition, variant in conditions(config, run, panel):
+            target = episodes_file(out, panel, run["name"], condition)
             if target.exists():
                 continue
-            retrieval = head if sight == "head" else None
+            retrieval = head if condition.startswith("head") else None
+            cost, began = Cost(), time.perf_counter()
             records = evaluate_policies(
-                {run["name"]: policy}, scenes, store, observations, NOMINAL, workers, None, retrieval
+                {run["name"]: policy}, scenes, store, observations, variant, workers, None, retrieval, cost
             )
+            spent = {"run": run["name"], "panel": panel, "condition": condition}
+            spent |= cost.summary(len(records)) | {"wall_s": round(time.perf_counter() - began, 1)}
+            with open(out / "costs.jsonl", "a", encoding="utf-8") as log:
+                log.write(json.dumps(spent, sort_keys=True) + "\n")
             tagged = [  # one policy: the records follow the scenes
-                r | {"panel": panel, "sight": sight, "layout": panel_id(s)}
+                r | {"panel": panel, "sight": condition, "layout": panel_id(s)}
                 for r, s in zip(records, scenes, strict=True)
             ]
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -234,52 +278,63 @@ def _grid(records: list[dict], runs: list[str], layouts: list[str]):
     return np.array([[float(index[(run, i)]) for i in layouts] for run in runs])
 
 
-def read_episodes(out: Path, panel: str, run: str, sight: str) -> list[dict]:
-    path = Path(out) / "episodes" / panel / f"{run}_{sight}.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()]
+def episodes_file(out: Path, panel: str, run: str, condition: str) -> Path:
+    return Path(out) / "episodes" / panel / f"{run}_{condition}.jsonl"
+
+
+def read_episodes(out: Path, panel: str, run: str, condition: str) -> list[dict]:
+    return [json.loads(line) for line in episodes_file(out, panel, run, condition).read_text().splitlines()]
 
 
 def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out: Path) -> dict:
-    """Per sight (the run's head; true masks): each arm's success on the rare panels pooled and on
-    each panel, and the contrasts of :data:`CONTRASTS` whose arms both ran, paired by layout; 95 %
-    hierarchical bootstrap intervals over seeds and layouts (``config.bootstrap`` replicates)."""
+    """Per condition (the run's head; true masks; each under a shift, ``head@dim_light``): each
+    arm's success on the rare panels pooled and on each panel, and the contrasts of
+    :data:`CONTRASTS` whose arms both ran, paired by layout; 95 % hierarchical bootstrap intervals
+    over seeds and layouts (``config.bootstrap`` replicates); each run's rate beside them."""
     from scenegen.experiment.transfer_stats import difference, interval
 
-    rare = [p for p in panels if p != "common"]
-    groups = {**({"rare": rare} if rare else {}), **{p: [p] for p in panels}}  # "rare": the rare pooled
-    arms = {arm: [r["name"] for r in all_runs if r["arm"] == arm] for arm in config.arms}
     result: dict = {
         "version": 2,
         "side": config.side,
         "panels": {p: [panel_id(s) for s in scenes] for p, scenes in panels.items()},
         "runs": all_runs,
     }
-    for sight in SIGHTS if config.oracle_rows else SIGHTS[:1]:
+    evaluated: dict[str, dict[str, dict[str, list[str]]]] = {}  # condition -> panel -> arm -> runs
+    for run in all_runs:
+        for panel in panels:
+            for condition, _ in conditions(config, run, panel):
+                arms = evaluated.setdefault(condition, {}).setdefault(panel, {})
+                arms.setdefault(run["arm"], []).append(run["name"])
+    for condition, by_panel in evaluated.items():
+        rare = [p for p in by_panel if p != "common"]
+        groups = {**({"rare": rare} if rare else {}), **{p: [p] for p in by_panel}}
         grids = {}
         for group, members in groups.items():
-            for arm, names in arms.items():
-                records = [e for p in members for n in names for e in read_episodes(out, p, n, sight)]
+            for arm, names in by_panel[members[0]].items():
+                records = [e for p in members for n in names for e in read_episodes(out, p, n, condition)]
                 ids = [panel_id(s) for p in members for s in panels[p]]
-                grids[(group, arm)] = _grid(records, names, ids)
-        rates = {
-            group: {arm: interval(grids[(group, arm)], config.bootstrap, seed=i) for arm in arms}
-            for i, group in enumerate(groups)
+                grids[(group, arm)] = (_grid(records, names, ids), names)
+        arms_in = {g: [a for a in config.arms if (g, a) in grids] for g in groups}
+        result[condition] = {
+            "rates": {
+                g: {a: interval(grids[(g, a)][0], config.bootstrap, seed=i) for a in arms_in[g]}
+                for i, g in enumerate(groups)
+            },
+            "contrasts": {
+                g: {
+                    f"{a} - {b}": difference(grids[(g, a)][0], grids[(g, b)][0], config.bootstrap, seed=i)
+                    for a, b in CONTRASTS
+                    if a in arms_in[g] and b in arms_in[g]
+                }
+                for i, g in enumerate(groups)
+            },
+            "per_seed": {
+                g: {
+                    name: round(float(grids[(g, a)][0][k].mean()), 4)
+                    for a in arms_in[g]
+                    for k, name in enumerate(grids[(g, a)][1])
+                }
+                for g in groups
+            },
         }
-        contrasts = {
-            group: {
-                f"{a} - {b}": difference(grids[(group, a)], grids[(group, b)], config.bootstrap, seed=i)
-                for a, b in CONTRASTS
-                if a in arms and b in arms
-            }
-            for i, group in enumerate(groups)
-        }
-        per_seed = {
-            group: {
-                name: round(float(grids[(group, arm)][k].mean()), 4)
-                for arm, names in arms.items()
-                for k, name in enumerate(names)
-            }
-            for group in groups
-        }
-        result[sight] = {"rates": rates, "contrasts": contrasts, "per_seed": per_seed}
     return result

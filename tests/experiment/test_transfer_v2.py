@@ -50,22 +50,34 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
     assert names == ["A+_s0", "A+_s1", "C_s0", "C_s1"]
     for run in metrics["runs"]:  # cache folders named by the run and a digest of what decides it
         assert run["parts"].startswith(run["name"] + "-")
-        assert (cache / "heads" / run["parts"] / "separator.safetensors").is_file()
+        assert run["head"].startswith(run["name"] + "-")
+        assert (cache / "heads" / run["head"] / "separator.safetensors").is_file()
         assert (cache / "policies" / run["parts"] / "model.safetensors").is_file()
     heads = {r["head_sha256"] for r in metrics["runs"]}
     assert len(heads) == len(names), "every arm and seed has a head of its own"
-    for panel in ("toppled", "common"):
-        for name in names:
-            for sight in ("head", "oracle"):
-                rows = (out / "episodes" / panel / f"{name}_{sight}.jsonl").read_text().splitlines()
-                assert [json.loads(x)["layout"] for x in rows] == metrics["panels"][panel]
+    # oracle rows for seed 0 only; the depth-noise shift for C_s0 on the rare panel only
+    expected = {
+        "toppled": {n: ["head"] for n in names} | {"A+_s0": ["head", "oracle"]}
+        | {"C_s0": ["head", "oracle", "head@depth_noise", "oracle@depth_noise"]},
+        "common": {n: ["head"] for n in names} | {"A+_s0": ["head", "oracle"], "C_s0": ["head", "oracle"]},
+    }  # fmt: skip
+    for panel, runs in expected.items():
+        files = sorted(p.name for p in (out / "episodes" / panel).iterdir())
+        assert files == sorted(f"{n}_{c}.jsonl" for n, cs in runs.items() for c in cs)
+        for path in (out / "episodes" / panel).iterdir():
+            rows = path.read_text().splitlines()
+            assert [json.loads(x)["layout"] for x in rows] == metrics["panels"][panel]
     assert len(metrics["panels"]["toppled"]) == 2 and len(metrics["panels"]["common"]) == 2
-    for sight in ("head", "oracle"):
-        rates, contrasts = metrics[sight]["rates"], metrics[sight]["contrasts"]
-        assert set(rates["rare"]) == {"A+", "C"} and list(contrasts["rare"]) == ["C - A+"]
-        c = contrasts["rare"]["C - A+"]
-        assert c["low"] <= c["mean"] <= c["high"] and c["seeds"] == 2 and c["scenes"] == 2
-        assert set(metrics[sight]["per_seed"]["rare"]) == set(names)
+    rates, contrasts = metrics["head"]["rates"], metrics["head"]["contrasts"]
+    assert set(rates["rare"]) == {"A+", "C"} and list(contrasts["rare"]) == ["C - A+"]
+    c = contrasts["rare"]["C - A+"]
+    assert c["low"] <= c["mean"] <= c["high"] and c["seeds"] == 2 and c["scenes"] == 2
+    assert set(metrics["head"]["per_seed"]["rare"]) == set(names)
+    assert metrics["oracle"]["contrasts"]["rare"]["C - A+"]["seeds"] == 1
+    assert set(metrics["oracle"]["per_seed"]["common"]) == {"A+_s0", "C_s0"}
+    for shifted in ("head@depth_noise", "oracle@depth_noise"):
+        assert list(metrics[shifted]["rates"]) == ["rare", "toppled"]  # the rare panels only
+        assert set(metrics[shifted]["rates"]["rare"]) == {"C"} and not metrics[shifted]["contrasts"]["rare"]
 
 
 def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
@@ -73,7 +85,7 @@ def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
     config, metrics, _ = tiny_run
     from scenegen.experiment.sequences import NOMINAL, sight
 
-    heads = [Path(config.cache) / "heads" / r["parts"] for r in metrics["runs"]]
+    heads = [Path(config.cache) / "heads" / r["head"] for r in metrics["runs"]]
     assert len({sight(h, NOMINAL) for h in heads}) == len(heads)
 
 
@@ -111,6 +123,11 @@ def test_c_is_more_real_data_in_version_2():
         ({"side": "train"}, "side"),
         ({"version": 3}, "version"),
         ({"perturbation": {"name": "dim_light"}}, "not used by version 2"),
+        ({"oracle_seeds": [5]}, "oracle_seeds"),
+        ({"arm_seeds": {"C": [0, 7]}}, "arm_seeds.C"),
+        ({"perturbations": {"arms": ["D"]}}, "perturbations.arms"),
+        ({"perturbations": {"shifts": [{"name": "a"}, {"name": "a"}]}}, "shifts"),
+        ({"perturbations": {"shifts": [{"name": "x", "sensor": "lidar"}]}}, "sensor"),
     ],
 )
 def test_a_bad_version_2_configuration_is_one_line_naming_the_key(change, says):
@@ -120,3 +137,13 @@ def test_a_bad_version_2_configuration_is_one_line_naming_the_key(change, says):
     with pytest.raises(TransferConfigError, match=says) as info:
         load_transfer_config(None, raw)
     assert "\n" not in str(info.value)
+
+
+def test_the_command_prints_every_condition_with_its_contrasts(tiny_run):
+    from scenegen.cli.experiment import _v2_summary
+
+    _, metrics, _ = tiny_run
+    text = _v2_summary(metrics)
+    for condition in ("head", "oracle", "head@depth_noise", "oracle@depth_noise"):
+        assert f"\n{condition}: rare panels pooled\n" in text
+    assert text.count("C - A+:") == 2  # the shifted conditions hold C alone
