@@ -51,6 +51,14 @@ def add_commands(sub) -> None:
         action="store_true",
         help="only validate the configuration and the files and recipes it names; writes nothing",
     )
+    tr.add_argument(
+        "--estimate",
+        type=Path,
+        nargs="+",
+        metavar="FOLDER",
+        help="version 2: only project the configuration's wall time from the costs.jsonl that earlier "
+        "runs wrote into these out folders (a pilot's); writes nothing",
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(run=transfer)
     _add_panels(kinds)
@@ -197,6 +205,21 @@ def _v2_summary(metrics: dict) -> str:
     return "\n".join(lines)
 
 
+def _estimate(config, folders: list[Path]) -> int:
+    from scenegen.experiment.transfer_config import TransferConfigError
+    from scenegen.experiment.transfer_cost import describe, measured, project
+
+    if getattr(config, "version", 1) != 2:
+        raise TransferConfigError("--estimate: version 2 configurations only (version: 2)")
+    rates = measured(folders)
+    try:
+        projection = project(config, rates)
+    except ValueError as exc:
+        raise TransferConfigError(f"--estimate: {exc}") from None
+    print(describe(projection, rates))
+    return 0
+
+
 def transfer(args: argparse.Namespace) -> int:
     from scenegen.experiment.transfer import TransferError, run_transfer
     from scenegen.experiment.transfer_config import (
@@ -228,6 +251,8 @@ def transfer(args: argparse.Namespace) -> int:
                 f"extra {config.sizes.extra}; -> {config.out}"
             )
             return 0
+        if args.estimate:
+            return _estimate(config, args.estimate)
         if getattr(config, "version", 1) == 2:
             from scenegen.experiment.transfer_v2 import run_transfer_v2
 

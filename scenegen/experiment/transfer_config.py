@@ -169,6 +169,9 @@ class Perturbations(_Strict):
         return shifts
 
 
+V2_TAGS = tuple(t for t in PANEL_TAGS if t != "under_overhang")  # version 2's panels: no under_overhang
+
+
 class TransferConfigV2(TransferConfig):
     """Version 2 (issue 45; docs/transfer.md): each arm and seed trains its own retrieval head and its
     chooser through that head's masks, and is evaluated through it on one ``side`` of the version 2
@@ -182,6 +185,7 @@ class TransferConfigV2(TransferConfig):
     default, so none is silently ignored."""
 
     version: Literal[2] = 2
+    tags: tuple[str, ...] = V2_TAGS  # C's extra layouts and D's and E's requests: the tags with a panel
     panels: Path = PANELS_V2_FILE
     side: Literal["validation", "test"] = "validation"
     panel_names: tuple[str, ...] | None = None

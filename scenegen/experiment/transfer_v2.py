@@ -123,10 +123,11 @@ def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
 
     panels = panel_scenes(load_panels_v2(config.panels), config.side)
     names = config.panel_names or tuple(panels)
-    unknown = [n for n in names if n not in panels]
-    if unknown:
-        raise TransferError(f"panel_names: {unknown} not among the panels: {', '.join(panels)}")
-    return {name: panels[name][: config.per_panel] for name in names}
+    for key, asked in (("panel_names", names), ("panel_sizes", tuple(config.panel_sizes))):
+        unknown = [n for n in asked if n not in panels or n not in names]
+        if unknown:
+            raise TransferError(f"{key}: {unknown} not among the panels run: {', '.join(names)}")
+    return {name: panels[name][: config.panel_sizes.get(name, config.per_panel)] for name in names}
 
 
 def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after: str | None = None) -> dict:

@@ -67,7 +67,7 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
         for path in (out / "episodes" / panel).iterdir():
             rows = path.read_text().splitlines()
             assert [json.loads(x)["layout"] for x in rows] == metrics["panels"][panel]
-    assert len(metrics["panels"]["toppled"]) == 2 and len(metrics["panels"]["common"]) == 2
+    assert len(metrics["panels"]["toppled"]) == 2 and len(metrics["panels"]["common"]) == 1  # panel_sizes
     rates, contrasts = metrics["head"]["rates"], metrics["head"]["contrasts"]
     assert set(rates["rare"]) == {"A+", "C"} and list(contrasts["rare"]) == ["C - A+"]
     c = contrasts["rare"]["C - A+"]
@@ -147,3 +147,36 @@ def test_the_command_prints_every_condition_with_its_contrasts(tiny_run):
     for condition in ("head", "oracle", "head@depth_noise", "oracle@depth_noise"):
         assert f"\n{condition}: rare panels pooled\n" in text
     assert text.count("C - A+:") == 2  # the shifted conditions hold C alone
+
+
+def test_the_cost_of_a_configuration_is_projected_from_what_a_run_measured(tiny_run, capsys):
+    """--estimate counts the configuration's work (runs; episodes per condition class) and multiplies
+    it by the rates the run wrote to costs.jsonl; every trained part and evaluated file is there."""
+    from scenegen.cli import main
+    from scenegen.experiment.transfer_cost import measured, planned, project
+
+    config, _, _ = tiny_run
+    work = planned(config)
+    episodes = {"head": 12, "oracle": 6, "head@shift": 2, "oracle@shift": 2}
+    assert work["runs"] == 4 and work["episodes"] == episodes
+    rates = measured([config.out])
+    assert rates["training"]["head"]["n"] == 4 and rates["training"]["chooser"]["n"] == 4
+    assert {k: v["n"] for k, v in rates["episodes"].items()} == episodes
+    assert all(0 <= v["served"] <= 1 and v["cpu_s"] >= 0 for v in rates["episodes"].values())
+    assert rates["episodes"]["head"]["cpu_s"] > 0  # (a class may be served whole by the stores)
+    projection = project(config, rates)
+    assert not projection["assumed_like_head"] and projection["total_hours"] > 0
+    assert main(["experiment", "transfer", str(TINY), "--estimate", str(config.out)]) == 0
+    assert "4 runs (a head and a chooser each)" in capsys.readouterr().out
+    assert main(["experiment", "transfer", str(TINY), "--estimate", str(config.cache)]) == 2
+    assert "costs.jsonl" in capsys.readouterr().err
+
+
+def test_version_2_draws_its_rare_data_for_the_tags_that_have_a_panel():
+    """C's extra layouts and D's and E's requests cover the six version 2 panel tags: under_overhang
+    has no panel, so scenes drawn for it would dilute what the panels measure."""
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
+
+    config = load_transfer_config(None, {"version": 2})
+    panels = panel_scenes(load_panels_v2(config.panels), "validation")
+    assert set(config.tags) == set(panels) - {"common"} and "under_overhang" not in config.tags

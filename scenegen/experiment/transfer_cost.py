@@ -1,0 +1,108 @@
+"""What a version 2 configuration will cost, projected from what earlier runs measured (issue 45,
+point 5; ``scenegen experiment transfer CONFIG --estimate FOLDER...``; docs/transfer.md).
+
+The work of a configuration is counted, not guessed: its runs (each a head and a chooser to train)
+and, per condition class (through the head or true masks, nominal or shifted), the episodes its
+panels x runs x conditions hold (:func:`planned`). The measured side is the ``costs.jsonl`` that
+``transfer_v2`` appends as it works: wall seconds per trained head and chooser, and per evaluated
+(run, panel, condition) its episodes, wall seconds, CPU per kind of job and the share of attempts
+the sequence store served (:func:`measured`). :func:`project` multiplies the two; a class never
+measured takes the nominal head's rate (said in the output)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+from scenegen.experiment.transfer_config import TransferConfigV2
+
+CLASSES = ("head", "oracle", "head@shift", "oracle@shift")
+
+
+def condition_class(condition: str) -> str:
+    sight, _, shift = condition.partition("@")
+    return f"{sight}@shift" if shift else sight
+
+
+def planned(config: TransferConfigV2) -> dict:
+    """The configuration's work: ``runs`` (heads and choosers to train) and ``episodes`` per class."""
+    from scenegen.experiment.transfer_v2 import conditions, panels_v2, runs_v2
+
+    runs, sizes = runs_v2(config), {p: len(s) for p, s in panels_v2(config).items()}
+    episodes: Counter = Counter()
+    for run in runs:
+        for panel, n in sizes.items():
+            for condition, _ in conditions(config, run, panel):
+                episodes[condition_class(condition)] += n
+    return {"runs": len(runs), "panels": sizes, "episodes": {c: episodes[c] for c in CLASSES}}
+
+
+def measured(folders) -> dict:
+    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head and per chooser trained,
+    and per class the wall and CPU seconds per episode and the share of attempts served."""
+    rows = []
+    for folder in folders:
+        path = Path(folder) / "costs.jsonl"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no costs here; name the out folder of a version 2 run")
+        rows += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    out: dict = {"training": {}, "episodes": {}}
+    for stage in ("head", "chooser"):
+        walls = [r["wall_s"] for r in rows if r.get("stage") == stage]
+        if walls:
+            out["training"][stage] = {"wall_s": round(sum(walls) / len(walls), 1), "n": len(walls)}
+    for kind in CLASSES:
+        mine = [r for r in rows if "condition" in r and condition_class(r["condition"]) == kind]
+        episodes = sum(r["episodes"] for r in mine)
+        if episodes:
+            attempts = sum(r["attempts"] for r in mine)
+            out["episodes"][kind] = {
+                "wall_s": round(sum(r["wall_s"] for r in mine) / episodes, 3),
+                "cpu_s": round(sum(sum(r["cpu_seconds"].values()) for r in mine) / episodes, 3),
+                "served": round(sum(r["shared"] for r in mine) / attempts, 4) if attempts else None,
+                "n": episodes,
+            }
+    return out
+
+
+def project(config: TransferConfigV2, rates: dict) -> dict:
+    """Hours of wall time for ``config`` at the measured ``rates`` (:func:`measured`)."""
+    work = planned(config)
+    training = rates["training"]
+    per_run = sum(training.get(s, {}).get("wall_s", 0.0) for s in ("head", "chooser"))
+    base = rates["episodes"].get("head")
+    if base is None:
+        raise ValueError("the costs measured hold no nominal episode through a head; run a pilot first")
+    hours, assumed = {"training": work["runs"] * per_run / 3600}, []
+    busy = {"training": hours["training"]}  # episodes at their CPU-s over the workers: no waiting
+    for kind, n in work["episodes"].items():
+        rate = rates["episodes"].get(kind)
+        if rate is None and n:
+            assumed.append(kind)
+        hours[kind] = n * (rate or base)["wall_s"] / 3600
+        busy[kind] = n * (rate or base)["cpu_s"] / config.workers / 3600
+    return {
+        "work": work,
+        "hours": {k: round(v, 2) for k, v in hours.items()},
+        "total_hours": round(sum(hours.values()), 2),
+        "total_hours_at_cpu": round(sum(busy.values()), 2),
+        "assumed_like_head": assumed,
+    }
+
+
+def describe(projection: dict, rates: dict) -> str:
+    """The projection as lines a person reads."""
+    work, hours = projection["work"], projection["hours"]
+    lines = [f"{work['runs']} runs (a head and a chooser each): {hours['training']:.2f} h"]
+    for kind in CLASSES:
+        rate = rates["episodes"].get(kind)
+        served = f", {rate['served']:.0%} of attempts served" if rate and rate["served"] is not None else ""
+        measured_at = f"{rate['wall_s']:.2f} s wall each{served}" if rate else "not measured: as head"
+        lines.append(f"{work['episodes'][kind]} episodes {kind}: {hours[kind]:.2f} h ({measured_at})")
+    lines.append(f"total: {projection['total_hours']:.2f} h of wall time at the measured wall rates")
+    lines.append(
+        f"       {projection['total_hours_at_cpu']:.2f} h with the episodes' CPU-s spread over the "
+        "workers (no waiting: the floor where the measuring machine was shared)"
+    )
+    return "\n".join(lines)
