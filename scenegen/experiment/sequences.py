@@ -52,6 +52,8 @@ class Variant:
         if self.sensor is not None:
             from scenegen.perception.sensor import SENSORS
 
+            if not point:
+                raise ValueError(f"variant {self.name}: a sensor's noise needs the decision point")
             env.depth_sensor = (SENSORS[self.sensor], point)
 
     def apply(self, scene: EnvScene) -> EnvScene:
@@ -186,7 +188,11 @@ class ObservationStore:
 
     @staticmethod
     def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
-        shown = f"{variant.name}:{variant.light_scale}" + (f":{variant.sensor}" if variant.sensor else "")
+        shown = f"{variant.name}:{variant.light_scale}"
+        if variant.sensor is not None:
+            from scenegen.perception.sensor import SENSORS
+
+            shown += f":{SENSORS[variant.sensor].key()}"
         text = f"{path_key(sha, tokens)}|{seen}|{shown}|{inputs}"
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 

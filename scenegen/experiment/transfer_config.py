@@ -157,7 +157,7 @@ class Perturbations(_Strict):
         Shift(name="dim_light", light_scale=0.35),
         Shift(name="depth_noise", sensor="structured_light"),
     )
-    arms: tuple[str, ...] = ("A+", "C", "D")
+    arms: tuple[str, ...] | None = None  # None: those of A+, C and D that run
     seeds: tuple[int, ...] | None = None
 
     @field_validator("shifts")
@@ -226,6 +226,9 @@ class TransferConfigV2(TransferConfig):
         ):
             if not set(value) <= seeds:
                 raise ValueError(f"{key}: {list(value)}: seeds of training.seeds {sorted(seeds)} only")
+        for arm, chosen in self.arm_seeds.items():
+            if not chosen or len(set(chosen)) < len(chosen):
+                raise ValueError(f"arm_seeds.{arm}: {list(chosen)}: at least one seed, each named once")
         for key, arms in (("arm_seeds", self.arm_seeds), ("perturbations.arms", self.perturbed_arms())):
             if not set(arms) <= set(self.arms):
                 raise ValueError(f"{key}: {sorted(set(arms) - set(self.arms))} not among arms")
@@ -240,7 +243,10 @@ class TransferConfigV2(TransferConfig):
         return self.arm_seeds.get(arm, self.training.seeds)
 
     def perturbed_arms(self) -> tuple[str, ...]:
-        return self.perturbations.arms if self.perturbations else ()
+        if self.perturbations is None:
+            return ()
+        asked = self.perturbations.arms
+        return asked if asked is not None else tuple(a for a in ("A+", "C", "D") if a in self.arms)
 
 
 # version 1's keys that version 2 does not use (yet): refused when set

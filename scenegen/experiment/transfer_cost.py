@@ -46,7 +46,11 @@ def measured(folders) -> dict:
         path = Path(folder) / "costs.jsonl"
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no costs here; name the out folder of a version 2 run")
-        rows += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        for line in path.read_text().splitlines():
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line torn by a kill (or being written): it counts nothing
     out: dict = {"training": {}, "episodes": {}}
     for stage in ("head", "chooser"):
         walls = [r["wall_s"] for r in rows if r.get("stage") == stage]

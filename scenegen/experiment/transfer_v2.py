@@ -81,7 +81,7 @@ def conditions(config: TransferConfigV2, run: dict, panel: str) -> list[tuple[st
     sights = SIGHTS if oracle else SIGHTS[:1]
     out = [(sight, NOMINAL) for sight in sights]
     shifts = config.perturbations
-    if shifts and panel != "common" and run["arm"] in shifts.arms:
+    if shifts and panel != "common" and run["arm"] in config.perturbed_arms():
         if shifts.seeds is None or run["seed"] in shifts.seeds:
             for shift in shifts.shifts:
                 variant = Variant(shift.name, shift.light_scale, shift.sensor)
@@ -123,10 +123,12 @@ def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
 
     panels = panel_scenes(load_panels_v2(config.panels), config.side)
     names = config.panel_names or tuple(panels)
-    for key, asked in (("panel_names", names), ("panel_sizes", tuple(config.panel_sizes))):
-        unknown = [n for n in asked if n not in panels or n not in names]
-        if unknown:
-            raise TransferError(f"{key}: {unknown} not among the panels run: {', '.join(names)}")
+    unknown = [n for n in names if n not in panels]
+    if unknown:
+        raise TransferError(f"panel_names: {unknown} not among the panels: {', '.join(panels)}")
+    unknown = [n for n in config.panel_sizes if n not in names]
+    if unknown:
+        raise TransferError(f"panel_sizes: {unknown} not among the panels run: {', '.join(names)}")
     return {name: panels[name][: config.panel_sizes.get(name, config.per_panel)] for name in names}
 
 
@@ -138,6 +140,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     from scenegen.policy.network import PrimitivePolicy
 
     check_inputs(config)
+    panels = panels_v2(config)  # a wrong panel name fails now, not after the training
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
@@ -180,7 +183,6 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
             run["chooser_sha256"] = weights_sha256(folder)
         if lap("training"):
             return {}
-        panels = panels_v2(config)
         paths = PathStore(config.path_store)
         for number, run in enumerate(all_runs):
             _evaluate_run(config, run, *trained[run["name"]], panels, paths, observations, workers, out)
@@ -258,14 +260,14 @@ def _evaluate_run(config, run, policy, head, panels, store, observations, worker
             )
             spent = {"run": run["name"], "panel": panel, "condition": condition}
             spent |= cost.summary(len(records)) | {"wall_s": round(time.perf_counter() - began, 1)}
-            with open(out / "costs.jsonl", "a", encoding="utf-8") as log:
-                log.write(json.dumps(spent, sort_keys=True) + "\n")
             tagged = [  # one policy: the records follow the scenes
                 r | {"panel": panel, "sight": condition, "layout": panel_id(s)}
                 for r, s in zip(records, scenes, strict=True)
             ]
             target.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(target, "".join(json.dumps(r, sort_keys=True) + "\n" for r in tagged).encode())
+            with open(out / "costs.jsonl", "a", encoding="utf-8") as log:  # after the episodes: once
+                log.write(json.dumps(spent, sort_keys=True) + "\n")
 
 
 def _grid(records: list[dict], runs: list[str], layouts: list[str]):
@@ -324,6 +326,7 @@ def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out
             "contrasts": {
                 g: {
                     f"{a} - {b}": difference(grids[(g, a)][0], grids[(g, b)][0], config.bootstrap, seed=i)
+                    | {"seeds_second": len(grids[(g, b)][1])}  # "seeds" counts the first arm's
                     for a, b in CONTRASTS
                     if a in arms_in[g] and b in arms_in[g]
                 }

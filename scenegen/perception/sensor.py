@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+SEEDING = 1  # the version of how a frame's noise is drawn from (decision point, camera)
+
 
 @dataclass(frozen=True)
 class StructuredLight:
@@ -28,6 +30,12 @@ class StructuredLight:
     edge_missing: float = 0.2  # share of the pixels near an edge that return no depth
     edge_px: int = 2  # "near": within this many pixels of an edge
     edge_jump: float = 0.01  # m between 4-neighbours: an edge
+
+    def key(self) -> str:
+        """What decides the noise (the settings and the seeding's version): part of an observation's
+        key, so a changed model never serves frames the old one made."""
+        settings = ",".join(f"{v}" for v in (self.sigma0, self.k, self.z0, self.edge_missing, self.edge_px))
+        return f"structured_light{SEEDING}:{settings},{self.edge_jump}"
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         return self.sigma0 + self.k * (z - self.z0) ** 2

@@ -15,7 +15,7 @@ from scenegen.core.files import load_rows
 from scenegen.env.mixture import scene_weights
 from scenegen.env.scenes import reference_scene
 from scenegen.experiment.transfer_config import TransferConfigError, TransferConfigV2, load_transfer_config
-from scenegen.experiment.transfer_v2 import arm_mixture, run_transfer_v2, runs_v2
+from scenegen.experiment.transfer_v2 import arm_mixture, read_episodes, run_transfer_v2, runs_v2
 from scenegen.paths import PROJECT_ROOT
 
 TINY = PROJECT_ROOT / "tests" / "fixtures" / "transfer_v2_tiny.yaml"
@@ -75,6 +75,8 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
     assert set(metrics["head"]["per_seed"]["rare"]) == set(names)
     assert metrics["oracle"]["contrasts"]["rare"]["C - A+"]["seeds"] == 1
     assert set(metrics["oracle"]["per_seed"]["common"]) == {"A+_s0", "C_s0"}
+    exact, noisy = (read_episodes(out, "toppled", "C_s0", c) for c in ("oracle", "oracle@depth_noise"))
+    assert [r["plans"] for r in exact] != [r["plans"] for r in noisy]  # the sensor's noise was applied
     for shifted in ("head@depth_noise", "oracle@depth_noise"):
         assert list(metrics[shifted]["rates"]) == ["rare", "toppled"]  # the rare panels only
         assert set(metrics[shifted]["rates"]["rare"]) == {"C"} and not metrics[shifted]["contrasts"]["rare"]
@@ -92,7 +94,8 @@ def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
 def test_a_stopped_and_continued_run_gives_the_same_outcome(tiny_run):
     config, metrics, base = tiny_run
     resumed = tiny_config(base / "resumed", base / "shared")
-    assert run_transfer_v2(resumed, progress=False, stop_after="evaluation:1") == {}
+    # stopped after C_s0, whose noisy conditions are evaluated; continued from there
+    assert run_transfer_v2(resumed, progress=False, stop_after="evaluation:3") == {}
     again = run_transfer_v2(resumed, progress=False)
     drop = lambda m: {k: v for k, v in m.items() if k != "timings"}  # noqa: E731
     assert drop(again) == drop(metrics)
@@ -125,6 +128,8 @@ def test_c_is_more_real_data_in_version_2():
         ({"perturbation": {"name": "dim_light"}}, "not used by version 2"),
         ({"oracle_seeds": [5]}, "oracle_seeds"),
         ({"arm_seeds": {"C": [0, 7]}}, "arm_seeds.C"),
+        ({"arm_seeds": {"C": [0, 0]}}, "arm_seeds.C"),
+        ({"arm_seeds": {"C": []}}, "arm_seeds.C"),
         ({"perturbations": {"arms": ["D"]}}, "perturbations.arms"),
         ({"perturbations": {"shifts": [{"name": "a"}, {"name": "a"}]}}, "shifts"),
         ({"perturbations": {"shifts": [{"name": "x", "sensor": "lidar"}]}}, "sensor"),
