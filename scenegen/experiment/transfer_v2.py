@@ -45,7 +45,7 @@ from scenegen.experiment.transfer import (
 from scenegen.experiment.transfer_config import TransferConfigV2, check_inputs
 from scenegen.policy.labels import label_scenes, scene_sha256
 from scenegen.policy.panels import panel_id
-from scenegen.store.batch import atomic_write
+from scenegen.store.batch import atomic_write, recover_jsonl
 
 # (first, second): first minus second, in the report's order (issue 45, point 6)
 CONTRASTS = (("C", "A+"), ("D", "A+"), ("D", "C"), ("D", "E"), ("D", "B"), ("A+", "A"))
@@ -145,6 +145,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     out.mkdir(parents=True, exist_ok=True)
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
     claim_out(out, resolved)
+    recover_jsonl(out / "costs.jsonl")  # a line torn by a kill is cut before anything is appended
     timings: dict[str, float] = {}
     clock = [time.perf_counter()]
 
@@ -202,9 +203,14 @@ def _spent(out: Path, run: dict, stage: str, folder: Path):
     cached, began = (folder / "config.json").is_file(), time.perf_counter()
     yield
     if not cached:
-        spent = {"run": run["name"], "stage": stage, "wall_s": round(time.perf_counter() - began, 1)}
-        with open(out / "costs.jsonl", "a", encoding="utf-8") as log:
-            log.write(json.dumps(spent, sort_keys=True) + "\n")
+        _log_cost(out, {"run": run["name"], "stage": stage, "wall_s": round(time.perf_counter() - began, 1)})
+
+
+def _log_cost(out: Path, row: dict) -> None:
+    """Append one row to ``costs.jsonl`` (its torn last line, if a kill left one, was cut at the
+    run's start)."""
+    with open(out / "costs.jsonl", "a", encoding="utf-8") as log:
+        log.write(json.dumps(row, sort_keys=True) + "\n")
 
 
 def parts_digest(run: dict, config: TransferConfigV2, data, recipe: MixtureRecipe, head: bool = False) -> str:
@@ -266,8 +272,7 @@ def _evaluate_run(config, run, policy, head, panels, store, observations, worker
             ]
             target.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(target, "".join(json.dumps(r, sort_keys=True) + "\n" for r in tagged).encode())
-            with open(out / "costs.jsonl", "a", encoding="utf-8") as log:  # after the episodes: once
-                log.write(json.dumps(spent, sort_keys=True) + "\n")
+            _log_cost(out, spent)  # after the episodes: once per file
 
 
 def _grid(records: list[dict], runs: list[str], layouts: list[str]):

@@ -12,6 +12,7 @@ and camera give the same noisy frame to the head, the planner and the oracle ali
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from dataclasses import dataclass
 
@@ -34,8 +35,7 @@ class StructuredLight:
     def key(self) -> str:
         """What decides the noise (the settings and the seeding's version): part of an observation's
         key, so a changed model never serves frames the old one made."""
-        settings = ",".join(f"{v}" for v in (self.sigma0, self.k, self.z0, self.edge_missing, self.edge_px))
-        return f"structured_light{SEEDING}:{settings},{self.edge_jump}"
+        return f"structured_light{SEEDING}:{dataclasses.astuple(self)}"
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         return self.sigma0 + self.k * (z - self.z0) ** 2
