@@ -32,6 +32,7 @@ from scenegen.env.scenes import EnvScene
 from scenegen.experiment.sequences import (
     NOMINAL,
     SEQUENCE_RULES,
+    Cost,
     ObservationStore,
     PathStore,
     Variant,
@@ -41,7 +42,7 @@ from scenegen.experiment.sequences import (
     plan_digest,
     sight,
 )
-from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.primitives import PRIMITIVES, PlanGrid, make_plan
 from scenegen.manipulation.task import TIME_LIMIT
 from scenegen.policy.evaluate import ATTEMPTS
 from scenegen.policy.failures import attempt_cause, attempt_features, out_of_time
@@ -94,17 +95,21 @@ def _state(env, qpos: Sequence[float] | None) -> None:
 
 
 def simulate(
-    scene: EnvScene, prefix: Sequence[str], retrieval: Path | None = None, variant: Variant = NOMINAL
+    scene: EnvScene,
+    prefix: Sequence[str],
+    retrieval: Path | None = None,
+    variant: Variant = NOMINAL,
+    grid: PlanGrid | None = None,
 ) -> list[dict]:
     """Run ``prefix`` from ``scene``'s settled state in this process's environment, every decision
-    and re-observation seen through ``retrieval`` (None: the oracle) under ``variant``'s lighting;
+    and re-observation seen through ``retrieval`` (None: the oracle) under ``variant``'s lighting,
+    its plans executed on ``grid``;
     one store row per step of it (the sequence up to and including that primitive), keyed by the
     plans executed. A re-observation inside a primitive keeps its state (``regrasp.qpos``) and its
     plan, so that another head's plan there can be compared without simulating."""
     import mujoco
 
     from scenegen.env.episodes import EpisodeRecorder
-    from scenegen.manipulation.primitives import plan_top_grasp
     from scenegen.manipulation.rollout import run_primitive
     from scenegen.perception.observation import observe as look
 
@@ -127,7 +132,7 @@ def simulate(
         mujoco.mj_integratePos(env.sim.model._model, seen, data.qvel, -env.sim.model._model.opt.timestep)
         variant.sense(env, again_point(sha, tokens, name, len(again)))
         obs, view = look(env, perception, image=False)
-        plan = None if view is None else plan_top_grasp(view)
+        plan = None if view is None else make_plan("top_grasp", view, grid)
         again.append({"qpos": seen.tolist(), "plan": plan_digest(plan)})
         return obs, view
 
@@ -135,7 +140,14 @@ def simulate(
         again.clear()
         variant.sense(env, path_key(sha, tokens))  # the decision point, as observe() sees it
         outcome, params = run_primitive(  # the record is read for its trace: no colour images
-            env, name, recorder, episode=episode, perception=perception, look=look_again, images=False
+            env,
+            name,
+            recorder,
+            episode=episode,
+            perception=perception,
+            look=look_again,
+            images=False,
+            grid=grid,
         )
         decision = decision_token(name, params)
         regrasp = again[0] if again else None
@@ -169,9 +181,10 @@ def observe(
     inputs: str,
     retrieval: Path | None = None,
     point: str = "",
+    grid: PlanGrid | None = None,
 ) -> tuple[np.ndarray, dict]:
     """A decision point of ``scene`` (``point``: its path_key, which seeds a variant's sensor) at
-    ``qpos`` (None: the settled state), as ``variant`` shows it:
+    ``qpos`` (None: the settled state), as ``variant`` shows it, the plans on ``grid``:
     the policy input (``rgbd``: the front camera crop, its mask the ``retrieval`` head's prediction
     or the oracle's; ``state``: the state features) and what the decision needs besides: each
     primitive's plan token from what the planners see there, the pixels of the target's mask
@@ -188,7 +201,8 @@ def observe(
     variant.sense(env, point)
     obs, view = look(env, perception)
     plans = {
-        name: decision_token(name, None if view is None else p.plan(view)) for name, p in PRIMITIVES.items()
+        name: decision_token(name, None if view is None else make_plan(name, view, grid))
+        for name in PRIMITIVES
     }
     truth = scene.target_id if perception is None else None  # a head's observation holds its prediction
     meta = {"plans": plans, "mask_pixels": _mask_pixels(obs, truth), "score": None}
@@ -202,11 +216,15 @@ def observe(
 
 
 def regrasp_plan(
-    scene: EnvScene, qpos: Sequence[float], variant: Variant, retrieval: Path | None, point: str = ""
+    scene: EnvScene,
+    qpos: Sequence[float],
+    variant: Variant,
+    retrieval: Path | None,
+    point: str = "",
+    grid: PlanGrid | None = None,
 ) -> str:
-    """The plan a re-observation at ``qpos`` makes through ``retrieval`` (None: the oracle);
-    ``point``: the re-observation's (:func:`again_point`), which seeds a variant's sensor."""
-    from scenegen.manipulation.primitives import plan_top_grasp
+    """The plan (on ``grid``) a re-observation at ``qpos`` makes through ``retrieval`` (None: the
+    oracle); ``point``: the re-observation's (:func:`again_point`), which seeds a variant's sensor."""
     from scenegen.perception.observation import observe as look
 
     env = _env(scene)
@@ -215,7 +233,7 @@ def regrasp_plan(
     _state(env, qpos)
     variant.sense(env, point)
     _, view = look(env, perception)
-    return plan_digest(None if view is None else plan_top_grasp(view))
+    return plan_digest(None if view is None else make_plan("top_grasp", view, grid))
 
 
 def again_point(sha: str, tokens: Sequence[str], primitive: str, number: int) -> str:
@@ -230,9 +248,9 @@ def _job(job: tuple) -> tuple:
 
     kind, scene, arg = job[0], job[1], job[2]
     began = time.process_time()
-    if kind == "simulate":  # (prefix, retrieval, variant)
+    if kind == "simulate":  # (prefix, retrieval, variant, grid)
         result = simulate(scene, *arg)
-    elif kind == "regrasp":  # (qpos, variant, key, retrieval, point)
+    elif kind == "regrasp":  # (qpos, variant, key, retrieval, point, grid)
         qpos, variant, key, *rest = arg
         result = (key, regrasp_plan(scene, qpos, variant, *rest))
     else:
@@ -284,35 +302,9 @@ class _Run:
     success: bool = False
 
 
-@dataclass
-class Cost:
-    """Where an evaluation's work went: attempts answered from the store (``shared``) or simulated,
-    and the CPU seconds of each kind of job (measured in the process that ran it)."""
-
-    attempts: int = 0
-    shared: int = 0
-    simulated: int = 0
-    cpu: dict = dataclasses.field(
-        default_factory=lambda: dict.fromkeys(("observe", "regrasp", "simulate"), 0.0)
-    )
-
-    def add(self, kind: str, seconds: float) -> None:
-        self.cpu[kind] += seconds
-
-    def summary(self, episodes: int) -> dict:
-        total = sum(self.cpu.values())
-        return {
-            "episodes": episodes,
-            "attempts": self.attempts,
-            "shared": self.shared,
-            "sharing_rate": round(self.shared / self.attempts, 4) if self.attempts else None,
-            "sequences_simulated": self.simulated,
-            "cpu_seconds": {k: round(v, 2) for k, v in self.cpu.items()},
-            "cpu_per_episode": round(total / episodes, 3) if episodes else None,
-        }
-
-
-def _observations(runs, inputs_of, observations, variant, seen, retrieval, workers, cost, progress) -> None:
+def _observations(
+    runs, inputs_of, observations, variant, seen, retrieval, workers, cost, progress, grid=None
+):
     """Render the decision points the observation store lacks (``inputs_of(run)``: the input kind)."""
     wanted = {}
     for r in runs:
@@ -321,14 +313,14 @@ def _observations(runs, inputs_of, observations, variant, seen, retrieval, worke
         if observations.meta(key) is None or observations.get(key) is None:
             qpos = r.entry["qpos"] if r.entry else None
             point = path_key(r.sha, r.tokens)
-            wanted[key] = ("observe", r.scene, (qpos, variant, inputs, key, retrieval, point))
+            wanted[key] = ("observe", r.scene, (qpos, variant, inputs, key, retrieval, point, grid))
     for kind, (key, value, meta), seconds in workers.map(list(wanted.values())):
         observations.put(key, value, meta)
         cost.add(kind, seconds)
         progress and progress("observation")
 
 
-def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost, progress) -> None:
+def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost, progress, grid=None) -> None:
     """Each run's chosen attempt (``r.prefix[-1]``, decided as ``r.decisions[-1]``): from the store
     where the same plans were executed before (a re-observation's plan compared at its stored state),
     else simulated; sets ``r.entry`` and ``r.tokens``."""
@@ -340,7 +332,7 @@ def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost,
             key = _regrasp_key(r, decision, variant, seen)
             if observations.meta(key) is None:
                 point = again_point(r.sha, r.tokens, r.prefix[-1], 0)
-                job = (found[0]["regrasp"]["qpos"], variant, key, retrieval, point)
+                job = (found[0]["regrasp"]["qpos"], variant, key, retrieval, point, grid)
                 checks[key] = ("regrasp", r.scene, job)
     for kind, (key, plan), seconds in workers.map(list(checks.values())):
         observations.put(key, None, {"plan": plan})
@@ -354,7 +346,7 @@ def _resolve(runs, store, observations, variant, seen, retrieval, workers, cost,
         if r.entry is not None:
             cost.shared += 1
         else:
-            missing.setdefault((r.sha, r.prefix), ("simulate", r.scene, (r.prefix, retrieval, variant)))
+            missing.setdefault((r.sha, r.prefix), ("simulate", r.scene, (r.prefix, retrieval, variant, grid)))
     measured = {}
     results = workers.map(list(missing.values()))
     for job_key, (kind, rows, seconds) in zip(list(missing), results, strict=True):
@@ -383,14 +375,16 @@ def evaluate_policies(
     retrieval: Path | None = None,
     cost: Cost | None = None,
     rules: int | None = None,
+    grid: PlanGrid | None = None,
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
     policy, scene id, tags, target category, the primitives chosen, success, failure labels.
     ``workers``: an open :class:`Workers` (default: this process); ``retrieval``: the retrieval
     head every decision and re-observation sees through (None: the oracle's masks); ``cost``: a
     :class:`Cost` to count the sharing and the CPU in; ``rules``: the perception rules' version that
-    scores a head's decisions (default ``PERCEPTION_RULES``; observations are kept per version). The
-    expert rows stay the oracle's: they say what the physics allows."""
+    scores a head's decisions (default ``PERCEPTION_RULES``; observations are kept per version);
+    ``grid``: the resolution plans are executed at (None: as planned). The expert rows stay the
+    oracle's, as planned: they say what the physics allows."""
     import torch
 
     from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
@@ -399,10 +393,10 @@ def evaluate_policies(
     if workers is None:
         with Workers(1) as here:
             return evaluate_policies(
-                policies, scenes, store, observations, variant, here, progress, retrieval, cost, rules
+                policies, scenes, store, observations, variant, here, progress, retrieval, cost, rules, grid
             )
     cost = cost if cost is not None else Cost()
-    seen = sight(retrieval, variant, rules)
+    seen = sight(retrieval, variant, rules) + (f"|{grid.key()}" if grid is not None else "")
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
     for _ in range(ATTEMPTS):
         for r in runs:  # a policy that has tried every primitive it knows stops; so does the clock
@@ -412,14 +406,14 @@ def evaluate_policies(
         if not going:
             break
         inputs_of = lambda r: policies[r.policy].inputs  # noqa: E731
-        _observations(going, inputs_of, observations, variant, seen, retrieval, workers, cost, progress)
+        _observations(going, inputs_of, observations, variant, seen, retrieval, workers, cost, progress, grid)
         for r in going:
             key = ObservationStore.key(r.sha, r.tokens, variant, policies[r.policy].inputs, seen)
             x = observations.get(key)
             r.decisions.append(observations.meta(key))
             r.prefix = (*r.prefix, policies[r.policy].choose(torch.from_numpy(x), exclude=set(r.prefix)))
             r.entry = None
-        _resolve(going, store, observations, variant, seen, retrieval, workers, cost, progress)
+        _resolve(going, store, observations, variant, seen, retrieval, workers, cost, progress, grid)
         for r in going:
             r.success = r.done = bool(r.entry["success"])
     failed = {r.sha: r.scene for r in runs if not r.success}

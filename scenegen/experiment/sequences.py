@@ -213,3 +213,31 @@ class ObservationStore:
             buffer = io.BytesIO()
             np.save(buffer, value, allow_pickle=False)
             atomic_write(self.folder / f"{key}.npy", buffer.getvalue())
+
+
+@dataclass
+class Cost:
+    """Where an evaluation's work went: attempts answered from the store (``shared``) or simulated,
+    and the CPU seconds of each kind of job (measured in the process that ran it)."""
+
+    attempts: int = 0
+    shared: int = 0
+    simulated: int = 0
+    cpu: dict = dataclasses.field(
+        default_factory=lambda: dict.fromkeys(("observe", "regrasp", "simulate"), 0.0)
+    )
+
+    def add(self, kind: str, seconds: float) -> None:
+        self.cpu[kind] += seconds
+
+    def summary(self, episodes: int) -> dict:
+        total = sum(self.cpu.values())
+        return {
+            "episodes": episodes,
+            "attempts": self.attempts,
+            "shared": self.shared,
+            "sharing_rate": round(self.shared / self.attempts, 4) if self.attempts else None,
+            "sequences_simulated": self.simulated,
+            "cpu_seconds": {k: round(v, 2) for k, v in self.cpu.items()},
+            "cpu_per_episode": round(total / episodes, 3) if episodes else None,
+        }

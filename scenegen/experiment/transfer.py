@@ -88,7 +88,7 @@ def build_sources(
         "A+": [reference_scene(by_index[i], source="A+") for i in sets.a_plus_extra],
         "C": [reference_scene(by_index[i], source="C") for i in sets.c_extra],
     }
-    batches = config.cache / "batches"
+    batches = config.batches or config.cache / "batches"  # the declared run commits its scenes
     generated = {kind: generate_cells(kind, cells, config, batches, progress) for kind in generated_kinds}
     for kind, per_cell in generated.items():
         scenes[kind] = [

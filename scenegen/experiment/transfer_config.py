@@ -96,6 +96,7 @@ class TransferConfig(_Strict):
     # the retrieval head the evaluated policies see through (None: the oracle's masks, version 1)
     retrieval: Path | None = None
     cache: Path = Path("runs/transfer/cache")
+    batches: Path | None = None  # D's and E's generated scenes, C's calibration (None: cache/batches)
     out: Path = Path("assets/transfer/result")
     manifest: Path | None = Path("data_manifest.yaml")
 
@@ -148,6 +149,21 @@ class Shift(_Strict):
     sensor: Literal["structured_light"] | None = None
 
 
+class PlanGridSettings(_Strict):
+    """Version 2: the resolution every evaluated plan is executed at (manipulation/primitives.py,
+    ``PlanGrid``): positions to ``metres``, directions to ``degrees``. Heads whose plans fall in one
+    cell execute one attempt, which the sequence store then serves to all (the cost lever of issue
+    45, point 5); the expert labels and the choosers' training stay as planned."""
+
+    metres: float = Field(gt=0, le=0.02)
+    degrees: float = Field(gt=0, le=15)
+
+    def grid(self):
+        from scenegen.manipulation.primitives import PlanGrid
+
+        return PlanGrid(self.metres, self.degrees)
+
+
 class Perturbations(_Strict):
     """Version 2: the ``shifts`` every run of ``arms`` whose seed is in ``seeds`` (None: every
     training seed) is also evaluated under, on the rare panels, through its head and (with
@@ -180,7 +196,8 @@ class TransferConfigV2(TransferConfig):
     "common panel to its first 50"); ``oracle_rows``: each chooser also through true masks, the
     panel's ceiling (``oracle_seeds``: only the runs of these seeds, None: all). ``arms``: the arms
     run (the pilot: A+ and C); ``arm_seeds``: fewer training seeds for the arms named (the cut
-    order's "A, B and E to 3 seeds"); ``perturbations``: the shifts evaluated (None: none). Version
+    order's "A, B and E to 3 seeds"); ``perturbations``: the shifts evaluated (None: none);
+    ``plan_grid``: the resolution evaluated plans are executed at (None: as planned). Version
     1's keys that version 2 does not use (``V1_ONLY``) are refused unless at their version 2
     default, so none is silently ignored."""
 
@@ -197,6 +214,7 @@ class TransferConfigV2(TransferConfig):
     oracle_rows: bool = True
     oracle_seeds: tuple[int, ...] | None = None
     perturbations: Perturbations | None = None
+    plan_grid: PlanGridSettings | None = None
     alpha_sweep: tuple[float, ...] = ()
     state_ablation: tuple[str, ...] = ()
     perturbation: Perturbation | None = None

@@ -254,6 +254,7 @@ def _evaluate_run(config, run, policy, head, panels, store, observations, worker
     figure of ``metrics.json`` reads (CPU differs between machines; the episodes do not)."""
     from scenegen.experiment.closed_loop import Cost, evaluate_policies
 
+    grid = config.plan_grid and config.plan_grid.grid()
     for panel, scenes in panels.items():
         for condition, variant in conditions(config, run, panel):
             target = episodes_file(out, panel, run["name"], condition)
@@ -262,7 +263,16 @@ def _evaluate_run(config, run, policy, head, panels, store, observations, worker
             retrieval = head if condition.startswith("head") else None
             cost, began = Cost(), time.perf_counter()
             records = evaluate_policies(
-                {run["name"]: policy}, scenes, store, observations, variant, workers, None, retrieval, cost
+                {run["name"]: policy},
+                scenes,
+                store,
+                observations,
+                variant,
+                workers,
+                None,
+                retrieval,
+                cost,
+                grid=grid,
             )
             spent = {"run": run["name"], "panel": panel, "condition": condition}
             spent |= cost.summary(len(records)) | {"wall_s": round(time.perf_counter() - began, 1)}
@@ -304,6 +314,7 @@ def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out
     result: dict = {
         "version": 2,
         "side": config.side,
+        "plan_grid": config.plan_grid and config.plan_grid.model_dump(),  # None: plans as planned
         "panels": {p: [panel_id(s) for s in scenes] for p, scenes in panels.items()},
         "runs": all_runs,
     }

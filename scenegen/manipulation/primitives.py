@@ -22,7 +22,9 @@ parameters, and an executor, which moves the grip site through those parameters 
   grasp lifted where the target stands lifts it into the board.
 
 ``PRIMITIVES`` maps a name to its :class:`Primitive`; ``version`` changes whenever a primitive's
-behaviour does (expert labels are cached by it).
+behaviour does (expert labels are cached by it). A :class:`PlanGrid` is the resolution a plan is
+executed at (positions to a grid of metres, directions to one of degrees); none by default: the
+closed loop may set one so that heads whose plans differ below it execute, and share, one attempt.
 """
 
 from __future__ import annotations
@@ -45,8 +47,9 @@ CLOSE_STEPS, HOLD_STEPS = 15, 30  # control steps to close the hand; to hold the
 
 @dataclass(frozen=True)
 class Primitive:
-    """``plan(view) -> params``; ``execute(env, params, step=None, look=None)``: ``step`` takes an
-    action, ``look()`` re-observes (-> observation, view) for primitives that look again."""
+    """``plan(view) -> params``; ``execute(env, params, step=None, look=None, grid=None)``: ``step``
+    takes an action, ``look()`` re-observes (-> observation, view) for primitives that look again,
+    and the plan made there is executed on ``grid`` (:class:`PlanGrid`)."""
 
     name: str
     version: int
@@ -55,6 +58,47 @@ class Primitive:
 
 
 PRIMITIVES: dict[str, Primitive] = {}
+DIRECTIONS = ("closing", "approach")  # the plans' unit vectors in the table plane; the rest is metres
+
+
+@dataclass(frozen=True)
+class PlanGrid:
+    """The resolution a plan is executed at: every position and height rounded to a multiple of
+    ``metres``, every direction (``DIRECTIONS``) turned to a multiple of ``degrees`` of heading."""
+
+    metres: float
+    degrees: float
+
+    def __post_init__(self):
+        if not (self.metres > 0 and self.degrees > 0):
+            raise ValueError(f"plan grid {self.metres} m, {self.degrees} deg: both must be above 0")
+
+    def key(self) -> str:
+        return f"grid{self.metres:g}m{self.degrees:g}deg"
+
+    def snap(self, plan: dict | None) -> dict | None:
+        """``plan`` on this grid (None stays None: the target was not seen)."""
+        if plan is None:
+            return None
+
+        def metres(v):
+            return round(round(float(v) / self.metres) * self.metres, 9)
+
+        out = {}
+        for name, value in plan.items():
+            if name in DIRECTIONS:
+                step = np.radians(self.degrees)
+                heading = round(float(np.arctan2(value[1], value[0])) / step) * step
+                out[name] = [round(float(np.cos(heading)), 9), round(float(np.sin(heading)), 9)]
+            else:
+                out[name] = [metres(v) for v in value] if isinstance(value, list) else metres(value)
+        return out
+
+
+def make_plan(name: str, view: TargetView, grid: PlanGrid | None = None) -> dict:
+    """``name``'s plan for ``view``, on ``grid`` where one is given."""
+    plan = PRIMITIVES[name].plan(view)
+    return plan if grid is None else grid.snap(plan)
 
 
 def primitive(name: str, version: int):
@@ -117,7 +161,7 @@ def plan_top_grasp(view: TargetView) -> dict:
 
 
 @primitive("top_grasp", version=1)(plan_top_grasp)
-def execute_top_grasp(env, params: dict, step=None, look=None) -> None:
+def execute_top_grasp(env, params: dict, step=None, look=None, grid=None) -> None:
     rotation = down_grasp(np.asarray(params["closing"]))
     position = np.asarray(params["position"])
     approach = np.array([position[0], position[1], params["approach_z"]])
@@ -182,7 +226,7 @@ def _side_standoff(env, params: dict, step) -> np.ndarray:
 
 
 @primitive("side_grasp", version=1)(plan_side_grasp)
-def execute_side_grasp(env, params: dict, step=None, look=None) -> None:
+def execute_side_grasp(env, params: dict, step=None, look=None, grid=None) -> None:
     rotation = _side_standoff(env, params, step)
     _grasp_and_lift(env, np.asarray(params["position"]), rotation, step)
 
@@ -207,7 +251,7 @@ def plan_toppled_grasp(view: TargetView) -> dict:
 
 
 @primitive("toppled_grasp", version=1)(plan_toppled_grasp)
-def execute_toppled_grasp(env, params: dict, step=None, look=None) -> None:
+def execute_toppled_grasp(env, params: dict, step=None, look=None, grid=None) -> None:
     execute_top_grasp(env, params, step)
 
 
@@ -241,7 +285,7 @@ def plan_push_from_edge(view: TargetView) -> dict:
 
 
 @primitive("push_from_edge_then_grasp", version=1)(plan_push_from_edge)
-def execute_push_from_edge(env, params: dict, step=None, look=None) -> None:
+def execute_push_from_edge(env, params: dict, step=None, look=None, grid=None) -> None:
     rotation = down_grasp(np.asarray(params["closing"]))
     start = np.asarray(params["start"])
     servo(env, start + np.array([0, 0, 0.12]), rotation, CLOSE, max_steps=100, step=step)
@@ -249,15 +293,15 @@ def execute_push_from_edge(env, params: dict, step=None, look=None) -> None:
     servo(env, params["position"], rotation, CLOSE, max_steps=80, speed=0.3, step=step)
     here, _ = grip_site(env)
     servo(env, here + np.array([0, 0, 0.12]), rotation, OPEN, max_steps=40, step=step)
-    _regrasp(env, step, look)
+    _regrasp(env, step, look, grid)
 
 
-def _regrasp(env, step, look=None) -> None:
+def _regrasp(env, step, look=None, grid=None) -> None:
     """Re-observe (a new decision point's frames, through ``look``: the episode's perception, by
-    default the oracle's) and top-grasp from there."""
+    default the oracle's) and top-grasp from there, the plan on ``grid``."""
     _, view = look() if look is not None else observe(env)
     if view is not None:
-        execute_top_grasp(env, plan_top_grasp(view), step)
+        execute_top_grasp(env, make_plan("top_grasp", view, grid), step)
 
 
 # --------------------------------------------------------------------------- pull out, then grasp
@@ -287,7 +331,7 @@ HELD_GAP = 0.01  # m: fingers commanded closed but this far apart hold the targe
 
 
 @primitive("pull_out_then_grasp", version=3)(plan_pull_out)
-def execute_pull_out(env, params: dict, step=None, look=None) -> None:
+def execute_pull_out(env, params: dict, step=None, look=None, grid=None) -> None:
     rotation = _side_standoff(env, params, step)
     _close_at(env, params["position"], rotation, step)
     servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
@@ -300,4 +344,4 @@ def execute_pull_out(env, params: dict, step=None, look=None) -> None:
     servo(env, here + np.array([back[0], back[1], 0.0]), rotation, OPEN, max_steps=40, step=step)
     here, _ = grip_site(env)
     servo(env, here + np.array([0.0, 0.0, 0.15]), rotation, OPEN, max_steps=60, step=step)
-    _regrasp(env, step, look)
+    _regrasp(env, step, look, grid)

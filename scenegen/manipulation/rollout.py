@@ -3,7 +3,7 @@ The observation is rendered once, at the decision point, before the primitive (o
 
 from __future__ import annotations
 
-from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.primitives import PRIMITIVES, PlanGrid, make_plan
 from scenegen.manipulation.task import RetrieveMonitor, RetrieveOutcome
 from scenegen.perception.observation import KINDS, observe, observe_state
 
@@ -18,12 +18,14 @@ def run_primitive(
     observed: tuple | None = None,
     look=None,
     images: bool | None = None,
+    grid: PlanGrid | None = None,
 ) -> tuple[RetrieveOutcome, dict | None]:
     """Observe (``rgbd``, or the ``state`` ablation), plan ``name`` and execute it from the
     environment's current state; the outcome as the simulator measured it and the planned parameters
     (None when the target was not seen). ``episode``: (start time, the target's settled height) of
     the episode this attempt belongs to (default: it starts now), so that time, the limit and the
-    lift count from the episode's start, not the attempt's."""
+    lift count from the episode's start, not the attempt's. ``grid``: the resolution its plans (and a
+    re-observation's) are executed at (None: as planned)."""
     if observation_kind not in KINDS:
         raise ValueError(f"observation_kind {observation_kind!r}: choose one of {', '.join(KINDS)}")
     if recorder is not None and recorder.episode.observation_kind != observation_kind:
@@ -45,7 +47,7 @@ def run_primitive(
         monitor.outcome.events.append("target_not_seen")
         return monitor.outcome, None
     chosen = PRIMITIVES[name]
-    params = chosen.plan(view)
+    params = make_plan(name, view, grid)
 
     def step(action):
         if recorder is not None:
@@ -54,5 +56,6 @@ def run_primitive(
             env.step(action)
         monitor.update()
 
-    chosen.execute(env, params, step=step, look=look or (lambda: observe(env, perception, image)))
+    look = look or (lambda: observe(env, perception, image))
+    chosen.execute(env, params, step=step, look=look, grid=grid)
     return monitor.outcome, params

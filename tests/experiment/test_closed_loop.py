@@ -125,3 +125,25 @@ def test_the_perception_gap_runs_both_settings_on_one_store(demo_batch: Path, tm
     assert summary["settings"]["learned"]["success"]["all"]["first_decision_hit"] is not None
     assert summary["settings"]["oracle"]["success"]["all"]["first_decision_hit"] is None
     assert summary["store_mismatches"] == 0 and "| common | 1 |" in (tmp_path / "summary.md").read_text()
+
+
+def test_on_a_plan_grid_the_decision_observed_and_the_attempt_simulated_share_their_plans(
+    learned_run, tmp_path: Path
+):
+    """Evaluated on a ``PlanGrid``, every decision's plan token is the snapped plan's, the simulated
+    attempt is keyed by the same token (nothing measured twice otherwise), and a second evaluation is
+    served whole from the store."""
+    from scenegen.experiment.closed_loop import evaluate_policies
+    from scenegen.manipulation.primitives import PlanGrid
+
+    _, policies, scenes, _, _, records, _ = learned_run
+    grid = PlanGrid(metres=0.005, degrees=5.0)
+    store, observations = PathStore(tmp_path / "paths.jsonl"), ObservationStore(tmp_path / "obs")
+    head = ROOT / "retrieval" / "baseline"
+    snapped = evaluate_policies(policies, scenes, store, observations, retrieval=head, grid=grid)
+    assert [r["choices"][0] for r in snapped] == [r["choices"][0] for r in records]  # same decision
+    assert snapped[0]["plans"][0] != records[0]["plans"][0]  # executed on the grid: another plan
+    assert store.mismatches == 0
+    again = Cost()
+    repeat = evaluate_policies(policies, scenes, store, observations, retrieval=head, cost=again, grid=grid)
+    assert repeat == snapped and again.simulated == 0 and again.shared == again.attempts

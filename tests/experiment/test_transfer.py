@@ -42,6 +42,7 @@ def tiny_config(root: Path, shared: Path):
             "label_store": str(shared / "labels.parquet"),
             "path_store": str(shared / "paths.jsonl"),
             "cache": str(root / "cache"),
+            "batches": str(root / "batches"),  # D's and E's scenes beside the cache (committed in a real run)
             "out": str(root / "result"),
             "manifest": str(manifest),
         },
@@ -68,6 +69,9 @@ def test_the_tiny_configuration_runs_end_to_end(tiny_run):
     records = [json.loads(x) for p in (out / "episodes").glob("*.jsonl") for x in p.read_text().splitlines()]
     runs = {r["name"] for r in metrics["runs"]}
     assert {r["policy"] for r in records} == runs
+    for kind in ("D", "E"):  # the generated scenes where `batches` says, not in the cache
+        assert list((Path(config.batches) / kind).rglob("scene.json")), kind
+    assert not (Path(config.cache) / "batches").exists()
     # every run on both panels; the perturbed panel for its arms only
     panels = json.loads((out / "panels.json").read_text())["scenes"]
     for panel in ("rare", "common"):

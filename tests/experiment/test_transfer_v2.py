@@ -68,6 +68,7 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
             rows = path.read_text().splitlines()
             assert [json.loads(x)["layout"] for x in rows] == metrics["panels"][panel]
     assert len(metrics["panels"]["toppled"]) == 2 and len(metrics["panels"]["common"]) == 1  # panel_sizes
+    assert metrics["plan_grid"] == {"metres": 0.005, "degrees": 5.0}
     rates, contrasts = metrics["head"]["rates"], metrics["head"]["contrasts"]
     assert set(rates["rare"]) == {"A+", "C"} and list(contrasts["rare"]) == ["C - A+"]
     c = contrasts["rare"]["C - A+"]
@@ -133,6 +134,7 @@ def test_c_is_more_real_data_in_version_2():
         ({"perturbations": {"arms": ["D"]}}, "perturbations.arms"),
         ({"perturbations": {"shifts": [{"name": "a"}, {"name": "a"}]}}, "shifts"),
         ({"perturbations": {"shifts": [{"name": "x", "sensor": "lidar"}]}}, "sensor"),
+        ({"plan_grid": {"metres": 0.0, "degrees": 5.0}}, "metres"),
     ],
 )
 def test_a_bad_version_2_configuration_is_one_line_naming_the_key(change, says):

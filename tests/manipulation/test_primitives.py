@@ -173,3 +173,15 @@ def test_a_can_under_the_shelfs_board_is_pulled_out_then_lifted(env):
     assert np.linalg.norm(towards_robot) == pytest.approx(0.20, abs=1e-6) and towards_robot[0] < 0
     assert outcome.success, (outcome, params)
     assert env.target_pose()[0][0] < 0.11 - 0.03  # it came up in front of the board (x from 0.11)
+
+
+def test_a_grasp_on_a_plan_grid_executes_the_snapped_plan_and_still_lifts(env):
+    from scenegen.manipulation.primitives import PlanGrid
+
+    grid = PlanGrid(metres=0.004, degrees=5.0)
+    env.reset_to(bottle_alone())
+    _, exact = run_primitive(env, "top_grasp")
+    env.reset_to(bottle_alone())
+    outcome, params = run_primitive(env, "top_grasp", grid=grid)
+    assert params == grid.snap(exact) and params != exact
+    assert outcome.success and outcome.lift >= LIFT_HEIGHT, (outcome, params)
