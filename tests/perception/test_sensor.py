@@ -74,3 +74,29 @@ def test_in_closed_loop_every_plan_is_made_from_the_noisy_depth(demo_batch: Path
     assert noisy[0]["plans"][0].split("+")[0] == decided
     assert noisy[0]["plans"][0] != exact[0]["plans"][0]
     assert key != ObservationStore.key(scene_sha256(scenes[0]), (), NOMINAL, "rgbd", "oracle")
+
+
+def test_a_re_observation_under_noise_plans_as_the_simulation_did():
+    """Inside push_from_edge the hand looks again: under depth noise the plan the closed loop makes
+    there from the stored state (``regrasp_plan``, seeded by ``again_point``) is the one the
+    simulation executed, so a stored attempt is served only to a policy that would act alike; the
+    exact depth's plan there is another."""
+    from scenes import place, proposal
+
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.env.scenes import proposal_scene
+    from scenegen.experiment.closed_loop import again_point, regrasp_plan, simulate
+    from scenegen.experiment.sequences import NOMINAL, Variant
+    from scenegen.policy.labels import scene_sha256
+    from scenegen.schema.scene import Light, Lighting
+
+    light = Lighting(lights=(Light(position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), intensity=0.8),))
+    can = place(load_catalog(), "can", "soda_can", 0.1, 0.455)  # at the +y edge: pushed, then looked at
+    scene = proposal_scene(proposal([can], lighting=light), "edge_can")
+    noise = Variant("depth_noise", 1.0, "structured_light")
+    row = simulate(scene, ("push_from_edge_then_grasp",), None, noise)[-1]
+    assert row["regrasp"] is not None and row["regrasp"]["plan"] != "unseen"
+    point = again_point(scene_sha256(scene), (), "push_from_edge_then_grasp", 0)
+    state = row["regrasp"]["qpos"]
+    assert regrasp_plan(scene, state, noise, None, point) == row["regrasp"]["plan"]
+    assert regrasp_plan(scene, state, NOMINAL, None) != row["regrasp"]["plan"]
