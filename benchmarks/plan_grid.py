@@ -90,9 +90,9 @@ def compare(exact: Path, grid: Path, condition: str, replicates: int = 2000) -> 
         for layout, r in rows_exact.items():
             total += 1
             agree += r["success"] == rows_grid[layout]["success"]
-    runs = sorted({run for _, run in common})
-    arms = sorted({run.rsplit("_s", 1)[0] for run in runs})
     panels = sorted({p for p, _ in common})
+    runs = sorted(run for run in {r for _, r in common} if all((p, run) in both for p in panels))
+    arms = sorted({run.rsplit("_s", 1)[0] for run in runs})  # runs on every panel (one still going: not)
     layouts = [(p, lay) for p in panels for lay in sorted(first[(p, runs[0])])]
     report: dict = {
         "condition": condition,

@@ -39,7 +39,8 @@ def planned(config: TransferConfigV2) -> dict:
 
 
 def measured(folders) -> dict:
-    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head and per chooser trained,
+    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head (of the run's wall: a
+    head's own over the number trained at once) and per chooser trained,
     and per class the wall and CPU seconds per episode and the share of attempts served."""
     rows = []
     for folder in folders:
@@ -53,7 +54,8 @@ def measured(folders) -> dict:
                 continue  # a line torn by a kill (or being written): it counts nothing
     out: dict = {"training": {}, "episodes": {}}
     for stage in ("head", "chooser"):
-        walls = [r["wall_s"] for r in rows if r.get("stage") == stage]
+        # heads trained ``parallel`` at a time (transfer_v2.train_heads) cost their wall over that
+        walls = [r["wall_s"] / r.get("parallel", 1) for r in rows if r.get("stage") == stage]
         if walls:
             out["training"][stage] = {"wall_s": round(sum(walls) / len(walls), 1), "n": len(walls)}
     for kind in CLASSES:

@@ -117,6 +117,38 @@ def train_head(run: dict, config: TransferConfigV2, data, recipe, folder: Path, 
     return folder
 
 
+def _head_job(job: tuple) -> float:
+    """One head trained in a worker (``train_head``'s arguments); its wall seconds."""
+    began = time.perf_counter()
+    train_head(*job)
+    return time.perf_counter() - began
+
+
+def train_heads(config: TransferConfigV2, runs: list[dict], data: dict, out: Path, progress: bool) -> None:
+    """Every run's head not in the cache yet, ``config.workers`` at a time (each at one thread, as
+    alone: the same bytes), after the frames of all their scenes are rendered once; each head's wall
+    seconds appended to ``costs.jsonl`` as it lands."""
+    from tqdm import tqdm
+
+    from scenegen.perception.retrieval.frames import render_missing
+    from scenegen.runner.executors import ordered_map
+
+    cache = Path(config.cache)
+    pending = [r for r in runs if not (cache / "heads" / r["head"] / "config.json").is_file()]
+    if not pending:
+        return
+    scenes = list({scene_sha256(s): s for r in pending for s in data[r["arm"]][0]}.values())
+    render_missing(scenes, cache / "frames", config.workers, progress)
+    jobs = [(r, config, *data[r["arm"]], cache / "heads" / r["head"], cache / "frames") for r in pending]
+    walls = ordered_map(_head_job, jobs, config.workers)
+    for run, wall in zip(
+        pending, tqdm(walls, total=len(jobs), desc="heads", disable=not progress), strict=True
+    ):
+        _log_cost(
+            out, {"run": run["name"], "stage": "head", "wall_s": round(wall, 1), "parallel": config.workers}
+        )
+
+
 def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
     """The panels of the configured side (``panel_names``: those only), rare tags first, common last."""
     from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
@@ -167,16 +199,16 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         return {}
     observations = ObservationStore(cache / "observations")
     all_runs = runs_v2(config)
+    for run in all_runs:
+        arm_scenes, recipe = data[run["arm"]]
+        run["parts"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe)}"
+        run["head"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe, head=True)}"
+    train_heads(config, all_runs, data, out, progress)
     trained: dict[str, tuple] = {}
     with Workers(config.workers) as workers:
-        for run in tqdm(all_runs, desc="heads and choosers", disable=not progress):
-            arm_scenes, recipe = data[run["arm"]]
-            run["parts"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe)}"
-            run["head"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe, head=True)}"
+        for run in tqdm(all_runs, desc="choosers", disable=not progress):
             head = cache / "heads" / run["head"]
             folder = cache / "policies" / run["parts"]
-            with _spent(out, run, "head", head):
-                train_head(run, config, arm_scenes, recipe, head, cache / "frames")
             with _spent(out, run, "chooser", folder):
                 train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
             trained[run["name"]] = (PrimitivePolicy.load(folder), head)

@@ -105,6 +105,25 @@ def test_a_stopped_and_continued_run_gives_the_same_outcome(tiny_run):
         assert twin.read_bytes() == path.read_bytes(), path.name
 
 
+def test_heads_trained_two_at_a_time_are_the_bytes_of_heads_trained_alone(tiny_run):
+    """``workers: 2`` trains two heads at once (each at one thread, in its own process): the same
+    weights as the tiny run's heads, trained one after another, and each head's wall in the costs
+    with how many ran at once."""
+    from scenegen.experiment.transfer_cost import measured
+    from scenegen.experiment.transfer_v2 import weights_sha256
+
+    config, metrics, base = tiny_run
+    two = tiny_config(base / "two_at_a_time", base / "shared").model_copy(update={"workers": 2})
+    assert run_transfer_v2(two, progress=False, stop_after="training") == {}
+    for run in metrics["runs"]:
+        assert weights_sha256(Path(two.cache) / "heads" / run["head"]) == run["head_sha256"], run["name"]
+    costs = [json.loads(x) for x in (Path(two.out) / "costs.jsonl").read_text().splitlines()]
+    heads = [c for c in costs if c.get("stage") == "head"]
+    assert len(heads) == len(metrics["runs"]) and all(c["parallel"] == 2 for c in heads)
+    per_run = measured([two.out])["training"]["head"]["wall_s"]  # a head's share of the run's wall
+    assert per_run == pytest.approx(sum(c["wall_s"] / 2 for c in heads) / len(heads), abs=0.1)
+
+
 def test_c_is_more_real_data_in_version_2():
     """C's extra layouts are drawn with A's per-scene weight (as the curves' rare-rich set), not as a
     second term at alpha: every C scene as likely as every A scene."""
