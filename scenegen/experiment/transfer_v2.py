@@ -164,6 +164,12 @@ def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
     return {name: panels[name][: config.panel_sizes.get(name, config.per_panel)] for name in names}
 
 
+def resolved_config(config: TransferConfigV2) -> str:
+    """The configuration as its out folder's config.yaml holds it: what is run, not the workers or
+    the manifest its outcome is also written to (naming one later does not make another run)."""
+    return yaml.safe_dump(config.model_dump(mode="json", exclude={"workers", "manifest"}), sort_keys=False)
+
+
 def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after: str | None = None) -> dict:
     """Run (or continue) version 2; returns the metrics. ``stop_after``: ``sources``, ``labels``,
     ``training`` or ``evaluation:N`` (after N runs' evaluations), for tests of resume."""
@@ -175,7 +181,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     panels = panels_v2(config)  # a wrong panel name fails now, not after the training
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
-    resolved = yaml.safe_dump(config.model_dump(mode="json", exclude={"workers"}), sort_keys=False)
+    resolved = resolved_config(config)
     claim_out(out, resolved)
     recover_jsonl(out / "costs.jsonl")  # a line torn by a kill is cut before anything is appended
     timings: dict[str, float] = {}
@@ -222,10 +228,11 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
             if stop_after == f"evaluation:{number + 1}":
                 return {}
         lap("evaluation")
+    from scenegen.experiment.transfer_report_v2 import finish_v2
+
     metrics = metrics_v2(config, all_runs, panels, out)
-    metrics["timings"] = timings
-    write_json(out / "metrics.json", metrics)
-    return metrics
+    write_json(out / "metrics.json", metrics)  # what the artifact's checksum covers: no wall times
+    return metrics | finish_v2(config, metrics, out) | {"timings": timings}
 
 
 @contextlib.contextmanager
@@ -341,7 +348,7 @@ def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out
     arm's success on the rare panels pooled and on each panel, and the contrasts of
     :data:`CONTRASTS` whose arms both ran, paired by layout; 95 % hierarchical bootstrap intervals
     over seeds and layouts (``config.bootstrap`` replicates); each run's rate beside them."""
-    from scenegen.experiment.transfer_stats import difference, interval
+    from scenegen.experiment.transfer_stats import difference, interval, share
 
     result: dict = {
         "version": 2,
@@ -380,6 +387,17 @@ def metrics_v2(config: TransferConfigV2, all_runs: list[dict], panels: dict, out
                 }
                 for i, g in enumerate(groups)
             },
+            "share": (  # D's share of C's gain over A+ on the rare panels pooled
+                share(
+                    grids[("rare", "C")][0],
+                    grids[("rare", "A+")][0],
+                    grids[("rare", "D")][0],
+                    config.bootstrap,
+                    7,
+                )
+                if "rare" in groups and {"A+", "C", "D"} <= set(arms_in["rare"])
+                else None
+            ),
             "per_seed": {
                 g: {
                     name: round(float(grids[(g, a)][0][k].mean()), 4)

@@ -23,7 +23,16 @@ REFERENCE = PROJECT_ROOT / "assets" / "reference" / "reference.parquet"
 
 
 def tiny_config(root: Path, shared: Path) -> TransferConfigV2:
+    """The tiny configuration writing into ``root`` (its artifact and a project manifest the outcome
+    goes into); the label and sequence stores in ``shared``."""
+    from scenegen.data.project_manifest import DATASHEET, TRANSFER
+    from scenegen.manifest.io import write_manifest
+    from scenegen.manifest.schema import Manifest
+
     root.mkdir(parents=True, exist_ok=True)
+    manifest = root / "data_manifest.yaml"
+    if not manifest.exists():
+        write_manifest(manifest, Manifest(kind="project", datasheet=DATASHEET, transfer=TRANSFER))
     return load_transfer_config(
         TINY,
         {
@@ -31,7 +40,7 @@ def tiny_config(root: Path, shared: Path) -> TransferConfigV2:
             "path_store": str(shared / "paths.jsonl"),
             "cache": str(root / "cache"),
             "out": str(root / "result"),
-            "manifest": None,
+            "manifest": str(manifest),
         },
     )
 
@@ -83,6 +92,43 @@ def test_each_run_trains_its_own_head_and_chooser_and_is_scored_through_both_sig
         assert set(metrics[shifted]["rates"]["rare"]) == {"C"} and not metrics[shifted]["contrasts"]["rare"]
 
 
+def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run):
+    """report.md leads with the positive control; the manifest's transfer outcome is version 2 (the
+    positive control, the primary endpoint, each arm's rates, the artifact's checksum) and the
+    audit verifies it."""
+    from scenegen.audit.manifest import audit
+    from scenegen.core.files import folder_sha256
+    from scenegen.manifest.io import read_manifest
+
+    config, metrics, _ = tiny_run
+    out = Path(config.out)
+    text = (out / "report.md").read_text()
+    assert (
+        text.index("Positive control C - A+") < text.index("Primary endpoint D - A+") < text.index("Per arm")
+    )
+    assert "Failure labels" in text and "Generation CPU-s" in text
+    outcome = read_manifest(Path(config.manifest)).transfer
+    assert outcome.status == "measured" and outcome.metrics["version"] == 2
+    control = outcome.metrics["positive_control"]
+    assert control["mean"] == metrics["head"]["contrasts"]["rare"]["C - A+"]["mean"]
+    assert set(outcome.metrics["arms"]) == {"A+", "C"} and outcome.metrics["arms"]["C"]["seeds"] == [0, 1]
+    assert outcome.artifact_sha256 == folder_sha256(out) == metrics["artifact_sha256"]
+    report = audit(Path(config.manifest))
+    assert not report.violations, report.violations
+
+
+def test_ds_share_of_cs_gain_is_the_ratio_of_the_gains_with_its_interval():
+    import numpy as np
+
+    from scenegen.experiment.transfer_stats import share
+
+    scenes = np.arange(100)
+    base, c, d = ((scenes < k).astype(float)[None].repeat(2, 0) for k in (50, 70, 60))
+    measured = share(c, base, d, 500, seed=0)
+    assert measured["mean"] == 0.5 and measured["low"] <= 0.5 <= measured["high"]
+    assert share(base, base, d, 100, seed=0)["mean"] is None  # no gain to share
+
+
 def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
     """The observations a chooser trained on are keyed by its head: two heads, two sets of inputs."""
     config, metrics, _ = tiny_run
@@ -98,7 +144,8 @@ def test_a_stopped_and_continued_run_gives_the_same_outcome(tiny_run):
     # stopped after C_s0, whose noisy conditions are evaluated; continued from there
     assert run_transfer_v2(resumed, progress=False, stop_after="evaluation:3") == {}
     again = run_transfer_v2(resumed, progress=False)
-    drop = lambda m: {k: v for k, v in m.items() if k != "timings"}  # noqa: E731
+    # (the artifact's checksum covers costs.jsonl: CPU seconds differ between runs, episodes do not)
+    drop = lambda m: {k: v for k, v in m.items() if k not in ("timings", "artifact_sha256")}  # noqa: E731
     assert drop(again) == drop(metrics)
     for path in sorted((Path(config.out) / "episodes").rglob("*.jsonl")):
         twin = Path(resumed.out) / path.relative_to(config.out)
