@@ -51,7 +51,7 @@ class Training(_Strict):
 class Generation(_Strict):
     """How D and E make their scenes: ``recipe`` (the distributions the reference set came from),
     ``diffusion`` (D's proposer settings: by default the current generator's, pipelines/demo.yaml;
-    pipelines/transfer.yaml names the pinned ones its artifact was made with) and
+    pipelines/transfer_v1.yaml and pipelines/transfer.yaml name the pinned ones their runs use) and
     ``max_proposals`` per requested scene before a cell gives up."""
 
     recipe: Path = Path("pipelines/reference.yaml")
@@ -268,7 +268,7 @@ class TransferConfigV2(TransferConfig):
 
 
 # version 1's keys that version 2 does not use (yet): refused when set
-V1_ONLY = ("retrieval", "rare_per_tag", "common", "alpha_sweep", "state_ablation", "perturbation", "manifest")
+V1_ONLY = ("retrieval", "rare_per_tag", "common", "alpha_sweep", "state_ablation", "perturbation")
 
 
 def load_transfer_config(path: Path | None, overrides: dict | None = None) -> TransferConfig:
