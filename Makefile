@@ -121,7 +121,7 @@ bench-start: setup  ## the whole demo process (48 scenes, 2 workers) against the
 bench-realism: setup  ## batch realism checks of the generator at w = 1 and w = 4 (benchmarks/realism_guidance.py)
 	$(BIN)/python benchmarks/realism_guidance.py
 
-transfer: setup  ## the transfer experiment (pipelines/transfer.yaml; docs/transfer.md): assets/transfer/result
+transfer: setup  ## the transfer experiment, version 2's declared run (pipelines/transfer.yaml; docs/transfer.md; hours, resumable): assets/transfer/v2/result
 	$(BIN)/scenegen experiment transfer
 
 sweep: setup  ## guidance sweep of the generator: runs/sweep/sweep.{md,png,json}

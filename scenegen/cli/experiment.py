@@ -30,8 +30,13 @@ def add_commands(sub) -> None:
         "config.yaml, sources.json, panels.json, episodes/*.jsonl (one record per episode, with its "
         "failure label), metrics.json (success with 95% hierarchical bootstrap intervals), report.md, "
         "transfer.png. The outcome and the artifact's checksum go into the manifest's transfer section "
-        "(`scenegen audit` verifies it). Resumable: rerun the same command after a kill. The default "
-        "configuration is pipelines/transfer.yaml; its cost is in docs/transfer.md.",
+        "(`scenegen audit` verifies it). Version 2 (`version: 2`, the default configuration "
+        "pipelines/transfer.yaml; version 1's is pipelines/transfer_v1.yaml) trains per arm and seed its "
+        "own retrieval head and a chooser through it, evaluates through the head and through true masks "
+        "(nominal, dim light, depth noise) on one side of the version 2 panels, plans on the configured "
+        "grid, and writes config.yaml, sources.json, costs.jsonl, episodes/PANEL/RUN_CONDITION.jsonl and "
+        "metrics.json. Resumable: rerun the same command after a kill. Cost: docs/transfer.md, and "
+        "--estimate.",
     )
     tr.add_argument(
         "config",

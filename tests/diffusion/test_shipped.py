@@ -66,7 +66,7 @@ def test_generate_runs_the_demo_recipe_out_of_the_box(tmp_path: Path):
 
 
 def test_the_transfer_experiments_generator_is_pinned_to_the_settings_it_was_made_with():
-    """pipelines/transfer.yaml's D arm reads pipelines/transfer_generator.yaml: the shipped checkpoint
+    """pipelines/transfer_v1.yaml's D arm reads pipelines/transfer_generator.yaml: the shipped checkpoint
     pinned by its sha256 (the manifest's), every setting added since at its default (left out of the
     recipe's dump, so its scenes are those of before), while the demo recipe has the v2 settings on."""
     import yaml
@@ -74,7 +74,7 @@ def test_the_transfer_experiments_generator_is_pinned_to_the_settings_it_was_mad
     from scenegen.experiment.transfer_config import load_transfer_config
     from scenegen.propose.diffusion import DiffusionSettings
 
-    transfer = load_transfer_config(ROOT / "pipelines" / "transfer.yaml")
+    transfer = load_transfer_config(ROOT / "pipelines" / "transfer_v1.yaml")
     pinned = load_pipeline(ROOT / transfer.generation.diffusion).proposer
     manifest = yaml.safe_load((ROOT / "data_manifest.yaml").read_text())
     model = next(m for m in manifest["models"] if m["name"] == "generator")
@@ -85,3 +85,16 @@ def test_the_transfer_experiments_generator_is_pinned_to_the_settings_it_was_mad
     assert all(getattr(pinned, key) == DiffusionSettings.OMITTED_AT[key] for key in added)
     demo = load_pipeline(ROOT / "pipelines" / "demo.yaml").proposer
     assert demo.spacing and demo.upright_off_table and demo.soft_occluded and demo.arm_clearance
+
+
+def test_transfer_version_2s_generator_is_the_demo_recipes_pinned_by_its_checkpoint():
+    """pipelines/transfer.yaml (version 2) reads pipelines/transfer_generator_v2.yaml: the demo
+    recipe's proposer as declared (the cost terms of issue 35 on), with the shipped checkpoint's
+    sha256, so that a later generator cannot change D's scenes under the declared run."""
+    from scenegen.experiment.transfer_config import load_transfer_config
+
+    transfer = load_transfer_config(ROOT / "pipelines" / "transfer.yaml")
+    assert transfer.version == 2 and transfer.side == "test"
+    pinned = load_pipeline(ROOT / transfer.generation.diffusion).proposer
+    assert pinned.checkpoint_sha256 == sha256_file(GENERATOR / "model.safetensors")
+    assert pinned.spacing and pinned.upright_off_table and pinned.soft_occluded and pinned.arm_clearance
