@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit bench-start sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit bench-start sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -96,6 +96,9 @@ kill: setup  ## the kill harness in full: 20 random SIGKILLs per command, 5 for 
 
 bench-rare: setup  ## rare-case yield per CPU-second per tag: both baselines and the generator (benchmarks/rare_case_yield.py)
 	$(BIN)/python benchmarks/rare_case_yield.py
+
+bench-requests: setup  ## drawn requests nobody tuned for, every proposer, tries and CPU-s per scene: the tuning half (benchmarks/request_suite.py; 90 batches of up to 300 tries: hours)
+	$(BIN)/python benchmarks/request_suite.py
 
 bench-null: setup  ## 2,000 null-condition scenes of the generator against the held-out reference (benchmarks/null_condition.py)
 	$(BIN)/python benchmarks/null_condition.py

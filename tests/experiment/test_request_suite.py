@@ -1,0 +1,108 @@
+"""The request suite of issue 46 is drawn, not chosen: every required tag occurs for its target in the
+reference set's training split, 2 or 3 of them, sometimes one forbidden, a pose jittered from home or
+ready within the joint limits; the halves are fixed by their seeds."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from scenegen.core.files import load_rows
+from scenegen.experiment.request_suite import JITTER, draw_requests, suite, tags_by_category
+from scenegen.paths import PROJECT_ROOT
+from scenegen.schema.condition import PANDA_JOINT_LIMITS, RARE_TAGS, ROBOT_POSES
+
+REFERENCE = PROJECT_ROOT / "assets" / "reference" / "reference.parquet"
+
+
+@pytest.fixture(scope="module")
+def rows():
+    return load_rows(REFERENCE, "train")
+
+
+def test_each_request_asks_only_for_what_its_category_shows_in_the_data(rows):
+    known = tags_by_category(rows)
+    requests = suite(rows, "tuning") + suite(rows, "heldout")
+    assert len(requests) == 60
+    for r in requests:
+        assert 2 <= len(r.required) <= 3 and "nominal" not in r.required
+        assert set(r.required) <= set(known[r.target]), r.text
+        assert len(r.forbidden) <= 1 and not set(r.forbidden) & set(r.required)
+        assert set(r.forbidden) <= set(RARE_TAGS)
+        named = np.asarray(ROBOT_POSES[r.pose_name])
+        assert np.all(np.abs(np.asarray(r.robot_pose) - named) <= JITTER + 1e-9)
+        assert all(lo <= q <= hi for q, (lo, hi) in zip(r.robot_pose, PANDA_JOINT_LIMITS, strict=True))
+        condition = r.condition()
+        assert sorted(condition.required()) == sorted(r.required) and condition.forbidden() == list(
+            r.forbidden
+        )
+    assert 0 < sum(bool(r.forbidden) for r in requests) < len(requests)
+    assert {r.pose_name for r in requests} == set(ROBOT_POSES)
+
+
+def test_some_requests_compose_tags_the_data_never_shows_together(rows):
+    together = Counter()
+    for row in rows:
+        present = frozenset(t for t in RARE_TAGS if row[f"tag_{t}"])
+        together[(row["target_category"], present)] += 1
+    unseen = [
+        r
+        for r in suite(rows, "tuning")
+        if not any(c == r.target and set(r.required) <= tags for (c, tags) in together)
+    ]
+    assert unseen, "the drawn requests only repeat combinations the reference set holds"
+
+
+def test_the_halves_are_fixed_by_their_seeds_and_differ(rows):
+    assert [r.as_dict() for r in suite(rows, "tuning")] == [r.as_dict() for r in draw_requests(rows, 30, 1)]
+    assert [r.text for r in suite(rows, "tuning")] != [r.text for r in suite(rows, "heldout")]
+    with pytest.raises(ValueError, match="half"):
+        suite(rows, "test")
+
+
+def _benchmark():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "request_suite_bench", PROJECT_ROOT / "benchmarks" / "request_suite.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_benchmark_asks_each_proposer_and_counts_tries_per_scene(rows):
+    """One drawn request of the tuning half, one scene under a cap of 12 tries, by the diffusion and
+    procedural proposers of the demo recipe: every row counts its tries and CPU-s (an empty request
+    over one scene), and the summary's median sits among them."""
+    bench = _benchmark()
+    request = suite(rows, "tuning")[1]
+    results = bench.run_suite(
+        [request],
+        ["diffusion", "procedural"],
+        bench.ROOT / "pipelines" / "demo.yaml",
+        1,
+        12,
+        0,
+        log=lambda _: None,
+    )
+    assert set(results) == {"diffusion", "procedural"}
+    for block in results.values():
+        (row,) = block["rows"]
+        assert row["refused"] is None and row["tries"] >= 1
+        assert row["tries"] == row["accepted"] + sum(row["rejections"].values())
+        assert row["tries_per_scene"] == round(row["tries"] / max(row["accepted"], 1), 2)
+        assert block["summary"]["tries_per_scene"]["median"] == row["tries_per_scene"]
+
+
+def test_an_impossible_request_is_refused_with_its_physical_reason():
+    from scenegen.experiment.request_suite import Request
+    from scenegen.schema.condition import ROBOT_POSES
+
+    bench = _benchmark()
+    bottle = Request("bottle", ("toppled", "clutter"), (), "home", ROBOT_POSES["home"])
+    row = bench.ask(bench.ROOT / "pipelines" / "demo.yaml", bottle, "procedural", 1, 5, 0)
+    assert row["tries"] == 0 and "non-upright resting pose" in row["refused"]
+    assert bench.summarise([row])["refused"] == 1
