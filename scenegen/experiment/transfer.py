@@ -281,8 +281,8 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     out, cache = Path(config.out), Path(config.cache)
     out.mkdir(parents=True, exist_ok=True)
     # what decides the results (the worker count does not: the run's outputs do not depend on it)
-    # (nor does an unset retrieval head: a version 1 configuration resolves as it did)
-    ignored = {"workers"} | ({"retrieval"} if config.retrieval is None else set())
+    # (nor do an unset retrieval head or batches folder: a version 1 configuration resolves as it did)
+    ignored = {"workers"} | {k for k in ("retrieval", "batches") if getattr(config, k) is None}
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude=ignored), sort_keys=False)
     claim_out(out, resolved)
     timings: dict[str, float] = {}

@@ -100,9 +100,11 @@ def report(metrics: dict, out: Path, sources: dict) -> str:
     lines += [
         f"- {name}: {_fmt(value)}" for name, value in rare.items() if name not in (POSITIVE_CONTROL, PRIMARY)
     ]
-    share = head.get("share")
-    if share:
+    share, control = head.get("share"), rare.get(POSITIVE_CONTROL)
+    if share and share["mean"] is not None and control and control["low"] > 0:
         lines.append(f"- D's share of the C - A+ gain: {_fmt(share)}")
+    elif share:  # a ratio over a gain that may be 0 or negative says nothing
+        lines.append("- D's share of the C - A+ gain: undefined (C - A+ is not above 0)")
     lines += [
         "",
         "## Per arm (rare panels pooled) and per seed",
@@ -132,9 +134,8 @@ def report(metrics: dict, out: Path, sources: dict) -> str:
     table = head_table(out, list(head.get("rates", {}).get("rare", {})))
     arms = sorted({a for row in table.values() for a in row})
     lines += ["| panel | " + " | ".join(arms) + " |", "|---" * (len(arms) + 1) + "|"]
-    lines += [
-        f"| {p} | " + " | ".join(f"{row.get(a, 0):.3f}" for a in arms) + " |" for p, row in table.items()
-    ]
+    shown = lambda row, a: "-" if a not in row else f"{row[a]:.3f}"  # noqa: E731
+    lines += [f"| {p} | " + " | ".join(shown(row, a) for a in arms) + " |" for p, row in table.items()]
     lines += ["", "## Failure labels (rare panels, through the heads)", ""]
     for arm, counts in failure_table(out).items():
         lines.append(f"- {arm}: " + (", ".join(f"{k} {v}" for k, v in counts.items()) or "none"))

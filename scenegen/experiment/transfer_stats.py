@@ -67,6 +67,8 @@ def share(gain_arm: np.ndarray, base: np.ndarray, arm: np.ndarray, replicates: i
     scenes drawn once for all three and each arm's seeds on its own. Replicates where the gain is 0
     are dropped (the share is undefined there, counted in ``undefined``); the point value is None when
     the measured gain is 0."""
+    if not gain_arm.shape[1] == base.shape[1] == arm.shape[1]:
+        raise ValueError("a share needs the three arms on the same panel scenes")
     rng = np.random.default_rng(seed)
     scenes = _draws(rng, base.shape[1], replicates)
     means = [_grid_means(g, _draws(rng, g.shape[0], replicates), scenes) for g in (gain_arm, base, arm)]

@@ -144,9 +144,8 @@ def train_heads(config: TransferConfigV2, runs: list[dict], data: dict, out: Pat
     for run, wall in zip(
         pending, tqdm(walls, total=len(jobs), desc="heads", disable=not progress), strict=True
     ):
-        _log_cost(
-            out, {"run": run["name"], "stage": "head", "wall_s": round(wall, 1), "parallel": config.workers}
-        )
+        at_once = min(config.workers, len(jobs))  # a lone head left after a resume ran alone
+        _log_cost(out, {"run": run["name"], "stage": "head", "wall_s": round(wall, 1), "parallel": at_once})
 
 
 def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
@@ -231,7 +230,8 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     from scenegen.experiment.transfer_report_v2 import finish_v2
 
     metrics = metrics_v2(config, all_runs, panels, out)
-    write_json(out / "metrics.json", metrics)  # what the artifact's checksum covers: no wall times
+    write_json(out / "metrics.json", metrics)  # no wall times here (costs.jsonl has them, and the
+    # artifact's checksum covers it: the checksum differs between machines, the episodes do not)
     return metrics | finish_v2(config, metrics, out) | {"timings": timings}
 
 

@@ -89,7 +89,8 @@ class PlanGrid:
             if name in DIRECTIONS:
                 step = np.radians(self.degrees)
                 heading = round(float(np.arctan2(value[1], value[0])) / step) * step
-                out[name] = [round(float(np.cos(heading)), 9), round(float(np.sin(heading)), 9)]
+                # + 0.0: -0.0 and 0.0 (a heading of -180 and 180 degrees) are one plan
+                out[name] = [round(float(np.cos(heading)), 9) + 0.0, round(float(np.sin(heading)), 9) + 0.0]
             else:
                 out[name] = [metres(v) for v in value] if isinstance(value, list) else metres(value)
         return out

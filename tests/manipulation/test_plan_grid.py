@@ -42,3 +42,10 @@ def test_plans_within_one_cell_snap_alike_and_a_cell_apart_do_not():
 def test_a_grid_needs_a_positive_resolution():
     with pytest.raises(ValueError, match="above 0"):
         PlanGrid(metres=0.0, degrees=5.0)
+
+
+def test_headings_either_side_of_180_degrees_are_one_plan():
+    left, right = (np.radians(a) for a in (179.6, -179.6))
+    plans = [{**PLAN, "closing": [float(np.cos(h)), float(np.sin(h))]} for h in (left, right)]
+    assert GRID.snap(plans[0]) == GRID.snap(plans[1])
+    assert str(GRID.snap(plans[0])) == str(GRID.snap(plans[1]))  # no -0.0 against 0.0 in its digest
