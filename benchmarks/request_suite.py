@@ -40,15 +40,11 @@ sys.path.insert(0, str(ROOT))
 
 from scenegen.core.files import load_rows  # noqa: E402
 from scenegen.experiment.request_suite import Request, suite  # noqa: E402
+from scenegen.experiment.transfer_sources import cpu_seconds  # noqa: E402
 from scenegen.runner.config import ConfigError, load_pipeline  # noqa: E402
 from scenegen.runner.pipeline import run_batch  # noqa: E402
 
 PROPOSER_KINDS = ("diffusion", "procedural", "targeted")
-
-
-def cpu_seconds() -> float:
-    t = os.times()
-    return t.user + t.system + t.children_user + t.children_system
 
 
 def ask(recipe: Path, request: Request, proposer: str, scenes: int, cap: int, seed: int) -> dict:
