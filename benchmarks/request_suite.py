@@ -5,9 +5,12 @@ and seed, in this process one after the other.
 
     .venv/bin/python benchmarks/request_suite.py [--half tuning] [--count 30] [--scenes 3] [--cap 300]
         [--proposers diffusion procedural targeted] [--recipe pipelines/demo.yaml] [--limit N]
+        [--also RECIPE ...]
 
 The recipe (default the demo recipe, its realism check on) gives every proposer its settings; the
-procedural and targeted proposers take the settings they share with it. A try is every candidate
+procedural and targeted proposers take the settings they share with it. ``--also``: more recipes
+whose own proposer (e.g. the diffusion proposer with other settings) is asked the same requests in
+the same run, each a column named ``KIND[recipe name]``. A try is every candidate
 that reached check or settle, repairs included (the batch's proposals: accepted plus every logged
 rejection); the cap is the batch's max_proposals. Per request and proposer: scenes accepted, tries
 and CPU-s per accepted scene (None when none), the rejection labels, filled (all ``--scenes``) or
@@ -34,6 +37,7 @@ import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,10 +51,12 @@ from scenegen.runner.pipeline import run_batch  # noqa: E402
 PROPOSER_KINDS = ("diffusion", "procedural", "targeted")
 
 
-def ask(recipe: Path, request: Request, proposer: str, scenes: int, cap: int, seed: int) -> dict:
-    """One request of one proposer: a batch in a temporary folder, or the recipe's refusal."""
+def ask(recipe: Path, request: Request, proposer: str | None, scenes: int, cap: int, seed: int) -> dict:
+    """One request of one proposer (``proposer`` swapped in, or the recipe's own with None): a batch
+    in a temporary folder, or the recipe's refusal."""
     condition = request.condition().model_dump(mode="json", exclude={"text"})
-    overrides = {"n": scenes, "seed": seed, "max_proposals": cap, "render": False, "condition": condition}
+    overrides = {"n": scenes, "seed": seed, "max_proposals": cap, "max_tries": cap, "render": False}
+    overrides["condition"] = condition
     try:
         config = load_pipeline(recipe, overrides, None, proposer)
     except ConfigError as exc:
@@ -89,26 +95,37 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
+def columns(proposers, recipe: Path, also=()) -> dict[str, tuple[Path, str | None]]:
+    """The suite's columns: each proposer kind under ``recipe``, then each recipe of ``also`` with
+    its own proposer, as ``KIND[name]``: name -> (recipe, proposer kind to swap in or None)."""
+    out: dict[str, tuple[Path, str | None]] = {p: (recipe, p) for p in proposers}
+    for path in also:
+        raw = yaml.safe_load(Path(path).read_text())
+        out[f"{raw['proposer']['kind']}[{raw['name']}]"] = (Path(path), None)
+    return out
+
+
 def run_suite(
-    requests: list[Request], proposers, recipe: Path, scenes: int, cap: int, seed: int, log=print
+    requests: list[Request], proposers, recipe: Path, scenes: int, cap: int, seed: int, log=print, also=()
 ) -> dict:
-    """Every request asked of every proposer; per proposer its rows and their summary. The diffusion
-    checkpoint is loaded (and torch set up) once first, outside every timed batch."""
-    if "diffusion" in proposers and requests:
+    """Every request asked of every column (:func:`columns`); per column its rows and their summary.
+    The diffusion checkpoint is loaded (and torch set up) once first, outside every timed batch."""
+    table = columns(proposers, recipe, also)
+    if requests and any((kind or "diffusion") == "diffusion" for _, kind in table.values()):
         from scenegen.assets.catalog import load_catalog
         from scenegen.propose.base import PROPOSERS
 
         config = load_pipeline(recipe, {"n": 1}, None, "diffusion")
         PROPOSERS["diffusion"](config.proposer, load_catalog()).propose(requests[0].condition(), [0], seed)
-    results: dict = {p: {"rows": []} for p in proposers}
+    results: dict = {name: {"recipe": str(path), "rows": []} for name, (path, _) in table.items()}
     for number, request in enumerate(requests):
-        for proposer in proposers:
-            row = {"request": request.as_dict(), **ask(recipe, request, proposer, scenes, cap, seed)}
-            results[proposer]["rows"].append(row)
+        for name, (path, kind) in table.items():
+            row = {"request": request.as_dict(), **ask(path, request, kind, scenes, cap, seed)}
+            results[name]["rows"].append(row)
             shown = row["refused"] or f"{row['accepted']} scenes, {row['tries']} tries, {row['cpu_s']} CPU-s"
-            log(f"[{number + 1}/{len(requests)}] {proposer:10s} {request.text}: {shown}")
-    for proposer in proposers:
-        results[proposer]["summary"] = summarise(results[proposer]["rows"])
+            log(f"[{number + 1}/{len(requests)}] {name:10s} {request.text}: {shown}")
+    for name in table:
+        results[name]["summary"] = summarise(results[name]["rows"])
     return results
 
 
@@ -124,6 +141,9 @@ def main() -> None:
     parser.add_argument("--cap", type=int, default=300, help="tries allowed per request (default 300)")
     parser.add_argument("--proposers", nargs="+", choices=PROPOSER_KINDS, default=list(PROPOSER_KINDS))
     parser.add_argument("--recipe", type=Path, default=ROOT / "pipelines" / "demo.yaml")
+    parser.add_argument(
+        "--also", type=Path, nargs="+", default=[], help="more recipes, each asked with its own proposer"
+    )
     parser.add_argument("--reference", type=Path, default=ROOT / "assets" / "reference" / "reference.parquet")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="default benchmarks/results/request_suite_HALF.json")
@@ -134,7 +154,9 @@ def main() -> None:
 
     torch.set_num_threads(1)
     requests = suite(load_rows(args.reference, "train"), args.half, args.count)[: args.limit]
-    results = run_suite(requests, args.proposers, args.recipe, args.scenes, args.cap, args.seed)
+    results = run_suite(
+        requests, args.proposers, args.recipe, args.scenes, args.cap, args.seed, also=args.also
+    )
     print(f"\n{args.half} half, {len(requests)} requests, {args.scenes} scenes each, cap {args.cap} tries")
     print("| proposer | filled | empty | refused | tries/scene median | p90 | CPU-s/scene median | p90 |")
     print("|---|---|---|---|---|---|---|---|")

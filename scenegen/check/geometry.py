@@ -39,8 +39,8 @@ class CheckSettings(BaseModel):
     penetration_tolerance: float = 0.001  # deeper than this between parts is a collision
     support_height_tolerance: float = 0.002  # |object bottom - surface| allowed after snapping
     robot_clearance: float = 0.03  # minimum distance between objects/furniture and the robot
-    reach_min: float = 0.25  # grasp point distance from the shoulder (robot0_link1), metres
-    reach_max: float = 0.95  # Panda: 0.855 m to the flange + hand; an envelope, not IK
+    reach_min: float = layout.REACH[0]  # grasp point distance from the shoulder (robot0_link1), m
+    reach_max: float = layout.REACH[1]  # Panda: 0.855 m to the flange + hand; an envelope, not IK
 
 
 def _result(check: str, passed: bool, label: str, value: float, threshold: float, detail: str = ""):

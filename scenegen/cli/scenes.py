@@ -21,6 +21,9 @@ def add_commands(sub) -> None:
     gen.add_argument("--seed", type=int, help="batch seed (overrides the recipe's seed)")
     gen.add_argument("--max-proposals", type=int, help="give up after this many proposals (default 40 x n)")
     gen.add_argument(
+        "--max-tries", type=int, help="give up after this many tries, repairs included (default: no cap)"
+    )
+    gen.add_argument(
         "--out",
         type=Path,
         help="output directory (default runs/<name>); the same command on a killed batch resumes it",
@@ -73,6 +76,7 @@ def generate(args: argparse.Namespace) -> int:
     from scenegen.runner.executors import BackendError
 
     overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
+    overrides["max_tries"] = args.max_tries
     if args.no_render:
         overrides["render"] = False
     if args.workers < 1:
@@ -123,9 +127,15 @@ def generate(args: argparse.Namespace) -> int:
         print("rejections: " + ", ".join(f"{k} {v}" for k, v in summary.rejections.most_common()))
     print("stage seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in summary.seconds.items()))
     if summary.accepted < config.n:
+        capped = config.max_tries is not None and summary.proposals >= config.max_tries
+        cap = (
+            f"try cap ({config.max_tries}); raise --max-tries"
+            if capped
+            else f"proposal cap ({config.proposal_cap}); raise --max-proposals"
+        )
         print(
             f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted before the "
-            f"proposal cap ({config.proposal_cap}); raise --max-proposals or relax the recipe",
+            f"{cap} or relax the recipe",
             file=sys.stderr,
         )
         return 1

@@ -28,6 +28,10 @@ TABLE_TOP_Z = 0.8
 # stands behind the table, not by its joint angles (joint 1 turns about this point's vertical axis).
 # tests/sim/test_world.py checks it against the MuJoCo model at every named pose.
 SHOULDER = (-0.56, 0.0, 1.245)
+# The arm's envelope around the shoulder (m): a grasp point nearer than 0.25 or farther than 0.95 is
+# out of reach (Panda: 0.855 m to the flange, plus the hand; an envelope, not IK). The reachability
+# check's defaults, the generator's reach cost and the projection repairs share it.
+REACH = (0.25, 0.95)
 # An asset others may be stacked on (``stack`` support) has, standing upright (or in its most likely
 # pose), a flat top holding a circle of this radius (m): the bundled boxes, plate and cans (2.5 cm and
 # up), not the spoons, fork, knife, bottle, mug or bowl (1.6 cm and down). See is_stack_base.

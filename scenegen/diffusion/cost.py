@@ -71,7 +71,7 @@ from scenegen.diffusion.encoding import (
 ROBOT_BASE_XY = (-0.56, 0.0)
 ROBOT_KEEP_OUT = 0.2  # m around the base column
 SHARPNESS = 8.0  # presence logits are +-1; sigmoid(8 x) is ~0 or ~1 away from 0
-REACH, REACH_MARGIN = (0.25, 0.95), 0.03  # m: CheckSettings.reach_min / reach_max, and a margin
+REACH, REACH_MARGIN = layout.REACH, 0.03  # m: the arm's envelope (CheckSettings' defaults), a margin
 LOW_LIGHT_BOUND = 0.22  # soft low_light aims below the predicate's 0.25, for the shadows it ignores
 SPOT_CUTOFF, SPOT_EXPONENT = math.radians(45.0), 10.0  # MuJoCo's light defaults, which world uses
 OCCLUDED_AIM = 0.7  # soft occluded asks for this share hidden (the predicate: 0.5 of sample points)

@@ -88,7 +88,10 @@ def reference_layouts(path: Path, condition, unconditional: bool = False) -> tup
     for i, row in enumerate(flat):
         row["_row"] = i
     subset, description = reference_subset(flat, condition, unconditional)
-    return table.take([row["_row"] for row in subset]).to_pylist(), description
+    import pyarrow as pa
+
+    rows = pa.array([row["_row"] for row in subset], type=pa.int64())  # typed: a request may match none
+    return table.take(rows).to_pylist(), description
 
 
 @functools.lru_cache(maxsize=2)

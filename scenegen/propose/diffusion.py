@@ -61,6 +61,7 @@ class DiffusionSettings(AssetChoice):
         "repair_width": 1,
         "repair_strength": 0.75,
         "repair_labels": None,
+        "project": False,
         "solver": "ddim",
         "soft_occluded": False,
         "arm_clearance": False,
@@ -95,6 +96,9 @@ class DiffusionSettings(AssetChoice):
     # a missing tag succeeded less often than a fresh proposal (docs/generator.md), one of a geometric
     # failure more often
     repair_labels: tuple[RejectionLabel, ...] | None = None
+    # a repair first moves what a rejection names by the margin it measured (propose/project.py), and
+    # re-denoises only what has no projection or after PROJECT_RUN projections in a row
+    project: bool = False
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     spacing: bool = False  # separating also spaces same-support objects as the reference sampler does
@@ -148,6 +152,7 @@ class DiffusionSettings(AssetChoice):
 
 
 GROUP = 8  # proposals sampled together: indices 8k .. 8k + 7, whatever the caller asks for
+PROJECT_RUN = 3  # projections in a row on one repair path before a repair re-denoises
 REPAIR_STREAM = 7  # SeedSequence([seed, index, REPAIR_STREAM, attempt]): a repair's own noise
 SPREAD_STREAM = 11  # SeedSequence([seed, index, SPREAD_STREAM]): a proposal's drawn spread
 
@@ -289,7 +294,8 @@ class DiffusionProposer:
         return self._group[index % GROUP]
 
     def repair(self, parent: SceneProposal, rejection, attempt: int) -> SceneProposal | None:
-        """Attempt ``attempt`` of ``parent``'s index: the parts ``rejection`` blames
+        """Attempt ``attempt`` of ``parent``'s index: with ``project``, what ``rejection`` names moved
+        by the margin it measured (:meth:`_projected`) where it can be; else the parts it blames
         (``repair.resampled_for``) re-denoised with the rest of the scene held fixed (inpainting),
         then decoded and separated like a first-pass proposal; None when the rejection is not
         repaired or the scene cannot be encoded. Its noise comes from
@@ -300,6 +306,9 @@ class DiffusionProposer:
         from scenegen.diffusion.sample import Inpaint, sample
         from scenegen.propose.repair import repair_step, resampled_for
 
+        projected = self._projected(parent, rejection, attempt)
+        if projected is not None:
+            return projected
         resampled = resampled_for(rejection, parent)
         if not resampled:
             return None
@@ -342,6 +351,25 @@ class DiffusionProposer:
             objects[0], scene_out[0], parent.condition, parent.cameras, parent.index, parent.seed, False
         ).proposal
         step = repair_step(rejection, parent, attempt, resampled)
+        return proposal.model_copy(update={"attempt": attempt, "repairs": (*parent.repairs, step)})
+
+    def _projected(self, parent: SceneProposal, rejection, attempt: int) -> SceneProposal | None:
+        """With ``project``: ``parent`` moved by what ``rejection`` measured (propose/project.py), as
+        attempt ``attempt``; None when it has no projection, or the path's last PROJECT_RUN repairs
+        were projections already (then the repair re-denoises)."""
+        from scenegen.propose.project import project
+        from scenegen.propose.repair import repair_step
+
+        recent = parent.repairs[-PROJECT_RUN:]
+        if not self.settings.project or (
+            len(recent) == PROJECT_RUN and all(r.method == "project" for r in recent)
+        ):
+            return None
+        moved = project(parent, rejection, self.catalog, self.settings.max_shift)
+        if moved is None:
+            return None
+        proposal, names = moved
+        step = repair_step(rejection, parent, attempt, names, "project")
         return proposal.model_copy(update={"attempt": attempt, "repairs": (*parent.repairs, step)})
 
     def _sample_group(self, condition: Condition, group: int, seed: int) -> list:

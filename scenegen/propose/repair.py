@@ -80,8 +80,11 @@ def severity(rejection: Rejection) -> float:
     return cost
 
 
-def repair_step(rejection: Rejection, parent: SceneProposal, attempt: int, resampled) -> RepairStep:
-    """The row of a repair path that re-samples ``resampled`` of ``parent`` for ``rejection``."""
+def repair_step(
+    rejection: Rejection, parent: SceneProposal, attempt: int, resampled, method: str = "denoise"
+) -> RepairStep:
+    """The row of a repair path that re-samples (``method`` denoise) or moves (project) ``resampled``
+    of ``parent`` for ``rejection``."""
     return RepairStep(
         attempt=attempt,
         parent=parent.attempt,
@@ -89,6 +92,7 @@ def repair_step(rejection: Rejection, parent: SceneProposal, attempt: int, resam
         check=rejection.check,
         detail=rejection.detail[:200],
         resampled=tuple(resampled),
+        method=method,
     )
 
 

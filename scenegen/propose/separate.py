@@ -121,8 +121,10 @@ def separate(
     max_shift: float = 0.05,
     rounds: int = 8,
     spacing: bool = False,
+    fixed: frozenset[str] = frozenset(),
 ) -> SceneProposal:
-    """``proposal`` with interpenetrating objects pushed apart (see the module docstring).
+    """``proposal`` with interpenetrating objects pushed apart (see the module docstring); an object
+    named in ``fixed`` stays where it is and the other of its pair takes the whole push.
 
     ``spacing``: also push apart two objects on the same support whose footprint circles
     (``layout.footprint_radius``) overlap, the spacing the procedural sampler draws the reference
@@ -158,8 +160,9 @@ def separate(
                 if step is None and spacing:
                     step = _spacing_push(objects[i], objects[j], radii[i], radii[j])
                 if step is not None:
-                    push[i] += 0.5 * step
-                    push[j] -= 0.5 * step
+                    share = 0.0 if names[i] in fixed else 1.0 if names[j] in fixed else 0.5
+                    push[i] += share * step
+                    push[j] -= (1.0 - share) * step
             for center, solid in furniture:
                 step = _pair_push(a, solid, clearance, objects[i].position, center)
                 if step is not None:

@@ -51,7 +51,8 @@ class PipelineConfig(BaseModel):
     """One pipeline recipe.
 
     Keys: ``name``; ``n`` accepted scenes wanted; ``seed``; ``max_proposals`` (give up after this
-    many proposals, default 40 x n); ``condition`` (see :class:`Condition`); ``proposer``
+    many proposals, default 40 x n); ``max_tries`` (after this many tries, repairs included);
+    ``condition`` (see :class:`Condition`); ``proposer``
     (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
     ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``;
     ``robot_mesh_detail`` (the robot's meshes decimated for drawing).
@@ -78,6 +79,8 @@ class PipelineConfig(BaseModel):
     # User asset catalogs (``scenegen assets add``), each a catalog.yaml or its folder, relative to the
     # working directory; merged after the bundled one. Empty: the bundled catalog only.
     catalogs: tuple[str, ...] = ()
+    # give up after this many tries: proposals and their repairs (None: only max_proposals caps)
+    max_tries: int | None = Field(None, ge=1)
 
     @model_validator(mode="after")
     def _reachable_request(self):
@@ -110,7 +113,7 @@ class PipelineConfig(BaseModel):
         # A recipe without the realism filter dumps (and hashes) exactly as before the filter existed,
         # so the digests stamped into the reference set and earlier batches stay valid.
         data = handler(self)
-        for key in ("realism", "robot_mesh_detail"):  # the same for the render setting
+        for key in ("realism", "robot_mesh_detail", "max_tries"):  # the same for later keys
             if data.get(key, 0) is None:
                 del data[key]
         if not data.get("catalogs", True):  # and for a recipe of the bundled catalog only
@@ -156,8 +159,9 @@ def _format_error(path: Path, exc: ValidationError) -> str:
         valid = _fields_at(tuple(loc[:-1]), proposer)
         close = difflib.get_close_matches(str(loc[-1]), valid, n=2)
         shown = ", ".join(valid)
-        if len(shown) > 120:  # an error line holds 300 characters: the first keys and the count
-            shown = ", ".join(valid[:6]) + f", ... ({len(valid)} keys)"
+        if len(shown) > 150:  # an error line holds 300 characters: the first keys and the count
+            fit = max(k for k in range(1, len(valid) + 1) if len(", ".join(valid[:k])) <= 120)
+            shown = ", ".join(valid[:fit]) + f", ... ({len(valid)} keys)"
         hint = f"; did you mean {' or '.join(close)}?" if close else ""
         msg = f"unknown key{hint}; valid keys here: {shown} (docs/pipelines.md)"
     elif err["type"] in ("union_tag_invalid", "union_tag_not_found"):

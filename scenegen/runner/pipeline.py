@@ -36,6 +36,20 @@ def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterat
         )
 
 
+def _capped(config: PipelineConfig, accepted: int, rejections: Counter) -> bool:
+    """Whether the recipe's ``max_tries`` are spent."""
+    return config.max_tries is not None and accepted + sum(rejections.values()) >= config.max_tries
+
+
+def _within_cap(config: PipelineConfig, tries: list, done: int) -> list:
+    """An index's tries cut at the recipe's ``max_tries`` (``done`` made before it): the cut tries
+    are dropped, as if the tries had been made one at a time; its last kept try (a rejection) is
+    then the index's own row."""
+    if config.max_tries is None or done + len(tries) <= config.max_tries:
+        return tries
+    return tries[: config.max_tries - done]
+
+
 def make_proposer(config: PipelineConfig, catalog) -> Proposer:
     """The recipe's proposer, given what a proposer may not compute itself (it imports no MuJoCo):
     the arm's geoms at a robot pose (check.geometry.arm_discs) for a proposer that ``wants_arm``."""
@@ -126,7 +140,8 @@ def run_batch(
     proposals = _timed(_proposals(proposer, config, index), seconds)
     outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds, pool)  # lazy
     try:
-        for tries in outcomes if accepted < config.n else ():
+        for tries in outcomes if accepted < config.n and not _capped(config, accepted, rejections) else ():
+            tries = _within_cap(config, tries, accepted + sum(rejections.values()))
             *repaired, outcome = tries
             t0 = time.perf_counter()
             for rejected in repaired:  # tries that a repair followed
@@ -155,7 +170,7 @@ def run_batch(
                 f"proposals={index} " + " ".join(f"{k}={v}" for k, v in sorted(rejections.items())),
                 refresh=False,
             )
-            if accepted == config.n:
+            if accepted == config.n or _capped(config, accepted, rejections):
                 break
     finally:
         outcomes.close()  # stops the pool now, not at garbage collection

@@ -100,9 +100,10 @@ class Camera(_Value):
 
 
 class RepairStep(_Value):
-    """One repair on a scene's path: attempt ``attempt`` of its proposal index re-sampled ``resampled``
-    (object names, ``furniture``, ``lights``) of attempt ``parent``, which failed ``label`` at
-    ``check`` (``detail`` as its rejection row says). Attempt 0 is the first-pass proposal."""
+    """One repair on a scene's path: attempt ``attempt`` of its proposal index re-sampled (or, with
+    ``method`` project, moved) ``resampled`` (object names, ``furniture``, ``lights``) of attempt
+    ``parent``, which failed ``label`` at ``check`` (``detail`` as its rejection row says). Attempt 0
+    is the first-pass proposal."""
 
     attempt: int = Field(ge=1)
     parent: int = Field(ge=0)
@@ -110,6 +111,16 @@ class RepairStep(_Value):
     check: str
     detail: str = ""
     resampled: tuple[str, ...]
+    # how: re-denoised (inpainting), or moved by the rejection's measured margin (propose/project.py);
+    # left out of the row at its default (paths made before projections read as before)
+    method: Literal["denoise", "project"] = "denoise"
+
+    @model_serializer(mode="wrap")
+    def _omit_default(self, handler):
+        data = handler(self)
+        if data.get("method") == "denoise":
+            data.pop("method", None)
+        return data
 
 
 class SceneProposal(_Value):

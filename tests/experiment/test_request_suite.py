@@ -73,12 +73,19 @@ def _benchmark():
     return module
 
 
-def test_the_benchmark_asks_each_proposer_and_counts_tries_per_scene(rows):
+def test_the_benchmark_asks_each_proposer_and_counts_tries_per_scene(rows, tmp_path):
     """One drawn request of the tuning half, one scene under a cap of 12 tries, by the diffusion and
-    procedural proposers of the demo recipe: every row counts its tries and CPU-s (an empty request
-    over one scene), and the summary's median sits among them."""
+    procedural proposers of the demo recipe and by a recipe with projection repairs (``--also``):
+    every row counts its tries, repairs included, within the cap, and CPU-s (an empty request over
+    one scene), and the summary's median sits among them."""
+    import yaml
+
     bench = _benchmark()
-    request = suite(rows, "tuning")[1]
+    raw = yaml.safe_load((bench.ROOT / "pipelines" / "demo.yaml").read_text())
+    raw["name"] = "projecting"
+    raw["proposer"].update(repairs=4, project=True)
+    (tmp_path / "projecting.yaml").write_text(yaml.safe_dump(raw))
+    request = suite(rows, "tuning")[2]
     results = bench.run_suite(
         [request],
         ["diffusion", "procedural"],
@@ -87,11 +94,12 @@ def test_the_benchmark_asks_each_proposer_and_counts_tries_per_scene(rows):
         12,
         0,
         log=lambda _: None,
+        also=[tmp_path / "projecting.yaml"],
     )
-    assert set(results) == {"diffusion", "procedural"}
+    assert set(results) == {"diffusion", "procedural", "diffusion[projecting]"}
     for block in results.values():
         (row,) = block["rows"]
-        assert row["refused"] is None and row["tries"] >= 1
+        assert row["refused"] is None and 1 <= row["tries"] <= 12
         assert row["tries"] == row["accepted"] + sum(row["rejections"].values())
         assert row["tries_per_scene"] == round(row["tries"] / max(row["accepted"], 1), 2)
         assert block["summary"]["tries_per_scene"]["median"] == row["tries_per_scene"]

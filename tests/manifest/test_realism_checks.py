@@ -105,3 +105,23 @@ def test_distorted_layouts_fail_the_layout_checks(rows):
 def test_a_small_batch_is_recorded_as_insufficient(rows):
     checks = layout_checks(spread_and_dim(spoon_train(rows, MIN_SAMPLES - 1)), SHA, SPOON)
     assert {c.status for c in checks} == {"insufficient"}
+
+
+def test_a_request_no_reference_layout_shows_is_recorded_as_insufficient(rows):
+    """A combination of tags the reference set never holds (composing those is the generator's job)
+    has no layouts to compare with: its checks say so instead of failing to read the table."""
+    never = Condition(
+        task="retrieve",
+        target="can",
+        tags={
+            "near_edge": "required",
+            "clutter": "required",
+            "low_light": "required",
+            "on_floor": "required",
+        },
+    )
+    subset, _ = reference_layouts(REFERENCE_TABLE, never, False)
+    assert subset == []
+    checks = layout_checks(spoon_train(rows, MIN_SAMPLES), SHA, never)
+    assert {c.status for c in checks} == {"insufficient"}
+    assert {c.samples["reference"] for c in checks} == {0}

@@ -127,13 +127,17 @@ def test_the_sampler_returns_held_values_exactly(proposer_and_config):
     assert not torch.allclose(objects[:, 3], known_o[:, 3])
 
 
-def recipe(tmp_path: Path, repairs: int = 3) -> Path:
+def recipe(
+    tmp_path: Path, repairs: int = 3, project: bool = False, tags=("toppled", "occluded", "low_light"), **top
+) -> Path:
     raw = yaml.safe_load(Path("pipelines/demo.yaml").read_text())
     raw.update(name="repairs", n=3, render=False)
     raw.pop("robot_mesh_detail", None)
     raw["condition"]["target"] = "mug"
-    raw["condition"]["tags"] = {"toppled": "required", "occluded": "required", "low_light": "required"}
+    raw["condition"]["tags"] = dict.fromkeys(tags, "required")
     raw["proposer"]["repairs"] = repairs
+    raw["proposer"]["project"] = project
+    raw.update(top)
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(raw))
     return path
@@ -148,10 +152,19 @@ def files(batch: Path) -> dict[str, bytes]:
 
 
 @pytest.mark.slow
-def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(tmp_path):
+@pytest.mark.parametrize(
+    "project, tags, method",
+    [
+        (False, ("toppled", "occluded", "low_light"), "denoise"),
+        (True, ("toppled", "low_light", "clutter"), "project"),  # a missed low_light or clutter moved
+    ],
+)
+def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(
+    tmp_path, project, tags, method
+):
     from scenegen.cli import main
 
-    path = recipe(tmp_path)
+    path = recipe(tmp_path, project=project, tags=tags)
     assert main(["generate", str(path), "--out", str(tmp_path / "one"), "--workers", "1", "--quiet"]) == 0
     assert main(["generate", str(path), "--out", str(tmp_path / "two"), "--workers", "2", "--quiet"]) == 0
     one = files(tmp_path / "one")
@@ -165,6 +178,8 @@ def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(tm
     assert any(repaired)  # at least one scene was reached by repairs, and says how
     for path_ in filter(None, repaired):
         assert [step["attempt"] for step in path_] == list(range(1, len(path_) + 1))
+    methods = {step.get("method", "denoise") for path_ in filter(None, repaired) for step in path_}
+    assert method in methods, methods  # each repair is a step of the path, named by how it was made
     assert main(["audit", str(tmp_path / "one" / "manifest.yaml")]) == 0
 
     # A kill between an index's repairs: its rows so far written, nothing of how it ended.
@@ -197,3 +212,19 @@ def test_the_search_repairs_only_the_labels_it_is_given(proposal):
     assert geometric.next_parents() == []  # a missing tag: a fresh proposal does better
     geometric.add(proposal.model_copy(update={"attempt": 1}), rejection("collision", ""))
     assert [k for _, _, k in geometric.next_parents()] == [1]
+
+
+def test_max_tries_caps_every_try_repairs_included_and_resumes_as_capped(tmp_path):
+    from scenegen.cli import main
+
+    path = recipe(tmp_path, repairs=4, project=True, n=50, max_tries=7)
+    out = tmp_path / "capped"
+    assert main(["generate", str(path), "--out", str(out), "--quiet"]) == 1  # n not reached
+    rows = [json.loads(line) for line in (out / "rejections.jsonl").read_text().splitlines()]
+    accepted = (out / "index.jsonl").read_text().splitlines()
+    assert len(rows) + len(accepted) == 7
+    assert any(r.get("attempt") for r in rows)  # repairs counted as tries
+    assert not rows[-1].get("repaired")  # the index cut at the cap ends on its own row
+    before = files(out)
+    assert main(["generate", str(path), "--out", str(out), "--quiet"]) == 1
+    assert files(out) == before

@@ -1,0 +1,146 @@
+"""Projection repairs (propose/project.py): each rejection that names an object and measures a margin
+moves it by that margin, and the real check, settle and predicates then pass on what failed; what
+has no projection is left to re-denoising; the constants a proposer may not import agree with the
+checks' and predicates' own."""
+
+from __future__ import annotations
+
+import pytest
+
+from scenegen.check.geometry import CheckSettings, run_checks
+from scenegen.core import layout
+from scenegen.propose import project as proj
+from scenegen.runner.config import load_pipeline
+from scenegen.runner.process import process_proposal
+from scenegen.schema.condition import Condition
+from scenegen.schema.scene import Rejection
+from scenegen.tags.predicates import TagSettings
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_pipeline("pipelines/procedural.yaml", {"render": False}, "retrieve the mug")
+
+
+@pytest.fixture(scope="module")
+def accepted(config):
+    """A procedural proposal of a mug on the table, 10 cm or more from its edges, that the pipeline
+    accepts, with three or more other objects on the table."""
+    from scenegen.propose.procedural import ProceduralProposer
+
+    proposer = ProceduralProposer(config.proposer, config.catalog())
+    for proposal in proposer.propose(config.condition, range(40), 3):
+        target = next(o for o in proposal.objects if o.name == proposal.target)
+        on_table = [o for o in proposal.objects if o.support == "table" and o.name != proposal.target]
+        inside = abs(target.position[0]) < 0.25 and abs(target.position[1]) < 0.35  # 10 cm off every edge
+        if target.support != "table" or len(on_table) < 3 or not inside:
+            continue
+        if process_proposal(proposal, config, config.catalog(), export=False).record is not None:
+            return proposal
+    raise AssertionError("no accepted proposal with a mug on the table and three others")
+
+
+def outcome(proposal, config, **tags):
+    condition = Condition(task="retrieve", target="mug", tags=tags)
+    return process_proposal(
+        proposal.model_copy(update={"condition": condition}), config, config.catalog(), False
+    )
+
+
+def moved(proposal, name, x=None, y=None):
+    objects = tuple(
+        o.model_copy(
+            update={
+                "position": (
+                    x if x is not None else o.position[0],
+                    y if y is not None else o.position[1],
+                    o.position[2],
+                )
+            }
+        )
+        if o.name == name
+        else o
+        for o in proposal.objects
+    )
+    return proposal.model_copy(update={"objects": objects})
+
+
+def test_the_constants_agree_with_the_checks_and_predicates():
+    assert proj.CLUTTER_RADIUS == TagSettings().clutter_radius
+    assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
+
+
+def test_out_of_the_workspace_moved_back_inside(accepted, config):
+    other = next(o for o in accepted.objects if o.support == "table" and o.name != accepted.target)
+    off = moved(accepted, other.name, x=0.47)
+    results, _ = run_checks(off, config.catalog(), config.checks)
+    failed = results[-1]
+    assert failed.label == "out_of_workspace" and failed.detail == other.name
+    rejection = Rejection(
+        proposal_index=0,
+        stage="check",
+        label=failed.label,
+        check=failed.check,
+        value=failed.value,
+        threshold=failed.threshold,
+        detail=failed.detail,
+    )
+    fixed, names = proj.project(off, rejection, config.catalog())
+    assert names[0] == other.name
+    back, _ = run_checks(fixed, config.catalog(), config.checks)
+    assert back[0].passed and back[0].value >= proj.SLACK - 1e-6
+    placed = next(o for o in fixed.objects if o.name == other.name)
+    assert placed.projection_distance > 0.07  # the move is in its provenance
+
+
+def test_a_missed_near_edge_moved_by_its_margin_then_holds(accepted, config):
+    first = outcome(accepted, config, near_edge="required")
+    if first.record is not None:
+        pytest.skip("the mug is near an edge already")
+    assert first.rejection.label == "condition_unmet" and "near_edge" in first.rejection.detail
+    fixed, names = proj.project(accepted, first.rejection, config.catalog())
+    assert accepted.target in names
+    after = outcome(fixed, config, near_edge="required")
+    tags = after.record.tags if after.record is not None else None
+    assert after.record is not None, after.rejection.detail
+    assert tags["near_edge"].holds and tags["near_edge"].value <= TagSettings().near_edge_distance
+
+
+def test_a_missed_low_light_scales_the_lights_below_the_threshold(accepted, config):
+    first = outcome(accepted, config, low_light="required")
+    assert first.rejection is not None and "low_light" in first.rejection.detail
+    fixed, names = proj.project(accepted, first.rejection, config.catalog())
+    assert names == ("lights",) and fixed.objects == accepted.objects
+    after = outcome(fixed, config, low_light="required")
+    assert after.record is not None, after.rejection.detail
+    assert after.record.tags["low_light"].value == pytest.approx(
+        0.9 * TagSettings().low_light_irradiance, rel=0.02
+    )
+
+
+def test_a_missed_clutter_brings_the_nearest_others_in(accepted, config):
+    first = outcome(accepted, config, clutter="required")
+    if first.record is not None:
+        pytest.skip("the mug is cluttered already")
+    fixed, names = proj.project(accepted, first.rejection, config.catalog())
+    assert names and accepted.target not in names
+    after = outcome(fixed, config, clutter="required")
+    if after.record is None:  # a push apart may have left a pair overlapping: the collision's projection
+        assert after.rejection.label in ("collision", "out_of_workspace"), after.rejection.detail
+    else:
+        assert after.record.tags["clutter"].holds
+
+
+def test_what_has_no_projection_is_left_to_denoising(accepted, config):
+    for label, detail, stage in [
+        ("condition_unmet", "required toppled = 0.0 rad (threshold 0.785398)", "tag"),
+        (
+            "condition_unmet",
+            "required near_edge = 0.2 m (threshold 0.03); required occluded = 0.1 fraction (threshold 0.5)",
+            "tag",
+        ),
+        ("unstable", "not still within max_time", "settle"),
+        ("unrealistic", "", "tag"),
+    ]:
+        rejection = Rejection(proposal_index=0, stage=stage, label=label, check="x", detail=detail)
+        assert proj.project(accepted, rejection, config.catalog()) is None, label
