@@ -139,7 +139,7 @@ def main() -> None:
     parser.add_argument("--limit", type=int, help="ask only the first N requests (a quick look)")
     parser.add_argument("--scenes", type=int, default=3, help="scenes asked per request (default 3)")
     parser.add_argument("--cap", type=int, default=300, help="tries allowed per request (default 300)")
-    parser.add_argument("--proposers", nargs="+", choices=PROPOSER_KINDS, default=list(PROPOSER_KINDS))
+    parser.add_argument("--proposers", nargs="*", choices=PROPOSER_KINDS, default=list(PROPOSER_KINDS))
     parser.add_argument("--recipe", type=Path, default=ROOT / "pipelines" / "demo.yaml")
     parser.add_argument(
         "--also", type=Path, nargs="+", default=[], help="more recipes, each asked with its own proposer"

@@ -67,6 +67,58 @@ def add_commands(sub) -> None:
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(run=transfer)
     _add_panels(kinds)
+    _add_verifier(kinds)
+
+
+def _add_verifier(kinds) -> None:
+    ve = kinds.add_parser(
+        "verifier",
+        help="collect the generator's labelled tries on the request suite's tuning half and train the "
+        "learned verifier that guides sampling",
+        description="Asks the generator (RECIPE's proposer) every request of the request suite's tuning "
+        "half (never the held-out half), and each --bundled recipe its own request, keeping every try "
+        "(first passes and repairs) encoded as tokens with what the checks, settling and predicates said "
+        "(OUT/tries/NNN.npz, one per request: resumable); then fits the verifier, p(accepted) and "
+        "p(tag holds) from noisy tokens, timestep and request, every fifth request's tries held out to "
+        "measure it, and writes OUT/verifier (model.safetensors, config.json with the data's size, the "
+        "CPU-s of collecting and training and the held-out accuracy). A recipe uses it with "
+        "proposer.verifier (the folder), verifier_sha256 and verifier_weight (docs/generator.md).",
+    )
+    ve.add_argument("recipe", type=Path, help="the generator's recipe, e.g. pipelines/generator_v3.yaml")
+    ve.add_argument("--out", type=Path, required=True, help="folder for the tries and the verifier")
+    ve.add_argument("--count", type=int, default=30, help="requests of the tuning half (default 30)")
+    ve.add_argument("--tries", type=int, default=150, help="tries per request at most (default 150)")
+    ve.add_argument("--scenes", type=int, default=3, help="stop a request at this many scenes (default 3)")
+    ve.add_argument("--bundled", type=Path, nargs="*", default=[], help="recipes asked their own request")
+    ve.add_argument("--steps", type=int, default=3000, help="training steps (default 3000)")
+    ve.add_argument("--collect-only", action="store_true", help="collect the tries, train nothing")
+    ve.set_defaults(run=verifier)
+
+
+def verifier(args: argparse.Namespace) -> int:
+    from scenegen.core.files import CheckpointError, load_rows
+    from scenegen.experiment import verifier_data
+    from scenegen.paths import ASSETS_DIR
+    from scenegen.runner.config import ConfigError, load_pipeline
+
+    if min(args.count, args.tries, args.scenes, args.steps) < 1:
+        return fail("--count, --tries, --scenes and --steps must be at least 1")
+    try:
+        for recipe in [args.recipe, *args.bundled]:
+            if load_pipeline(recipe, {"n": 1}).proposer.kind != "diffusion":
+                return fail(f"{recipe}: proposer.kind is not diffusion; the verifier guides the generator")
+        rows = load_rows(ASSETS_DIR / "reference" / "reference.parquet", "train")
+        requests = verifier_data.requests_for(rows, "tuning", args.count)
+    except (ConfigError, CheckpointError, OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    jobs = verifier_data.jobs(args.recipe, requests, args.bundled)
+    verifier_data.collect_all(args.out, jobs, args.tries, args.scenes)
+    if args.collect_only:
+        return 0
+    summary = verifier_data.train(args.out, args.recipe, args.steps)
+    print(json.dumps(summary, indent=1))
+    print(f"-> {args.out / 'verifier'}")
+    return 0
 
 
 def _add_panels(kinds) -> None:

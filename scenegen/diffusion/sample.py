@@ -132,8 +132,14 @@ def sample(
     cost_weight: float = 0.0,
     inpaint: Inpaint | None = None,
     solver: str = "ddim",
+    verifier=None,
+    verifier_weight: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Denoise the initial noise (B, slots, object_width), (B, scene_width) under ``condition``.
+
+    ``verifier`` (diffusion/verifier.py): the clean-scene estimate also moves up the gradient of its
+    log p(accepted | x_t, t, c), by ``verifier_weight * sqrt(a_t) * grad_{x_t}`` (the gradient taken
+    through x_t = sqrt(a_t) x0 + sqrt(1 - a_t) eps, as the cost's is taken on x0).
 
     Rows whose condition is the null condition are unconditional samples whatever ``w``. With
     ``inpaint``, after every step the held part of x is replaced by the known scene noised to the
@@ -169,12 +175,26 @@ def sample(
             if regenerate is not None:
                 grad = grad * regenerate
             eps = (x - a.sqrt() * (x0.detach() - cost_weight * grad)) / (1 - a).sqrt()
+        if verifier is not None and verifier_weight > 0:
+            eps = _verifier_step(verifier, verifier_weight, x, eps, tt, condition, alphas[t], regenerate)
         x = scheduler.step(eps, t, x, **({"eta": 0.0} if solver == "ddim" else {})).prev_sample
         if known is not None:
             last = i + 1 == len(timesteps)
             held = known if last else _noised(known, alphas[timesteps[i + 1]], noise[i + 1])
             x = torch.where(regenerate, x, held)
     return x[:, :n_obj].reshape(b, cfg.slots, cfg.object_width), x[:, n_obj:]
+
+
+def _verifier_step(verifier, weight: float, x, eps, t, condition, a, regenerate) -> torch.Tensor:
+    """eps~ re-derived from the clean-scene estimate moved by ``weight * sqrt(a) * grad_x log p``
+    (log p: the verifier's log p(accepted | x_t, t, c)); only the regenerated part moves."""
+    xt = x.detach().requires_grad_(True)
+    with torch.enable_grad():
+        (grad,) = torch.autograd.grad(verifier.log_accept(xt, t, condition).sum(), xt)
+    if regenerate is not None:
+        grad = grad * regenerate
+    x0 = (x - (1 - a).sqrt() * eps) / a.sqrt()
+    return (x - a.sqrt() * (x0 + weight * a.sqrt() * grad)) / (1 - a).sqrt()
 
 
 def _noised(x0: torch.Tensor, alpha_bar: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:

@@ -62,6 +62,9 @@ class DiffusionSettings(AssetChoice):
         "repair_strength": 0.75,
         "repair_labels": None,
         "project": False,
+        "verifier": None,
+        "verifier_sha256": None,
+        "verifier_weight": 0.0,
         "solver": "ddim",
         "soft_occluded": False,
         "arm_clearance": False,
@@ -99,6 +102,11 @@ class DiffusionSettings(AssetChoice):
     # a repair first moves what a rejection names by the margin it measured (propose/project.py), and
     # re-denoises only what has no projection or after PROJECT_RUN projections in a row
     project: bool = False
+    # the learned verifier (diffusion/verifier.py: a checkpoint folder) whose log p(accepted) gradient
+    # steers sampling beside the cost, with this weight; its weights pinned by sha256 when given
+    verifier: str | None = None
+    verifier_sha256: str | None = Field(None, pattern=r"^[0-9a-f]{64}$")
+    verifier_weight: float = Field(0.0, ge=0.0, le=100.0)
     separate: bool = True  # push overlapping objects apart after decoding (propose/separate.py)
     max_shift: float = Field(0.05, ge=0.0, le=0.5)  # m, the most separating may move one object
     spacing: bool = False  # separating also spaces same-support objects as the reference sampler does
@@ -137,6 +145,19 @@ class DiffusionSettings(AssetChoice):
         if self.draw_spread:
             require_spread(read_checkpoint_config(self.checkpoint_dir(), "generator", "train one"), self)
 
+        if self.verifier is not None:
+            from scenegen.diffusion.verifier import load_verifier
+
+            load_verifier(self.verifier_dir())  # one line naming the file when it does not load
+            if self.verifier_sha256 is not None:
+                found = sha256_file(self.verifier_dir() / "model.safetensors")
+                if found != self.verifier_sha256:
+                    raise ValueError(
+                        f"verifier_sha256: {self.verifier}/model.safetensors has sha256 {found[:12]}..., "
+                        f"the recipe pins {self.verifier_sha256[:12]}...; restore it or unpin it"
+                    )
+        elif self.verifier_weight > 0:
+            raise ValueError("verifier_weight: no verifier to weigh; name its folder in `verifier`")
         if self.checkpoint_sha256 is not None:
             found = sha256_file(self.checkpoint_dir() / "model.safetensors")
             if found != self.checkpoint_sha256:
@@ -148,6 +169,10 @@ class DiffusionSettings(AssetChoice):
 
     def checkpoint_dir(self) -> Path:
         path = Path(self.checkpoint)
+        return path if path.is_absolute() else PROJECT_ROOT / path
+
+    def verifier_dir(self) -> Path:
+        path = Path(self.verifier or "")
         return path if path.is_absolute() else PROJECT_ROOT / path
 
 
@@ -346,12 +371,23 @@ class DiffusionProposer:
             cost_weight=s.cost_weight,
             inpaint=inpaint,
             solver=s.solver,
+            **self._verifier(),
         )
         proposal = self._placed(
             objects[0], scene_out[0], parent.condition, parent.cameras, parent.index, parent.seed, False
         ).proposal
         step = repair_step(rejection, parent, attempt, resampled)
         return proposal.model_copy(update={"attempt": attempt, "repairs": (*parent.repairs, step)})
+
+    def _verifier(self) -> dict:
+        """sample()'s verifier arguments: the settings' verifier, loaded once, and its weight."""
+        if self.settings.verifier is None or self.settings.verifier_weight <= 0:
+            return {}
+        from scenegen.diffusion.verifier import load_verifier
+
+        if getattr(self, "_loaded_verifier", None) is None:
+            self._loaded_verifier = load_verifier(self.settings.verifier_dir())
+        return {"verifier": self._loaded_verifier, "verifier_weight": self.settings.verifier_weight}
 
     def _projected(self, parent: SceneProposal, rejection, attempt: int) -> SceneProposal | None:
         """With ``project``: ``parent`` moved by what ``rejection`` measured (propose/project.py), as
@@ -399,6 +435,7 @@ class DiffusionProposer:
             cost=cost,
             cost_weight=s.cost_weight,
             solver=s.solver,
+            **self._verifier(),
         )
         out = []
         for k, (index, rng) in enumerate(zip(indices, rngs, strict=True)):

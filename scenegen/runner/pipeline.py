@@ -29,7 +29,7 @@ STAGES = ("propose", "check", "build", "settle", "tag", "render", "store")
 PROPOSAL_CHUNK = 8  # proposals drawn at a time (each is independent of the chunking)
 
 
-def _proposals(proposer: Proposer, config: PipelineConfig, start: int) -> Iterator[SceneProposal]:
+def proposal_stream(proposer: Proposer, config: PipelineConfig, start: int) -> Iterator[SceneProposal]:
     for first in range(start, config.proposal_cap, PROPOSAL_CHUNK):
         yield from proposer.propose(
             config.condition, range(first, min(first + PROPOSAL_CHUNK, config.proposal_cap)), config.seed
@@ -137,7 +137,7 @@ def run_batch(
         dynamic_ncols=True,
     )
 
-    proposals = _timed(_proposals(proposer, config, index), seconds)
+    proposals = _timed(proposal_stream(proposer, config, index), seconds)
     outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds, pool)  # lazy
     try:
         for tries in outcomes if accepted < config.n and not _capped(config, accepted, rejections) else ():
