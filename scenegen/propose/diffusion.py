@@ -62,6 +62,7 @@ class DiffusionSettings(AssetChoice):
         "repair_strength": 0.75,
         "repair_labels": None,
         "project": False,
+        "denoise": True,
         "verifier": None,
         "verifier_sha256": None,
         "verifier_weight": 0.0,
@@ -102,6 +103,10 @@ class DiffusionSettings(AssetChoice):
     # a repair first moves what a rejection names by the margin it measured (propose/project.py), and
     # re-denoises only what has no projection or after PROJECT_RUN projections in a row
     project: bool = False
+    # re-denoise what no projection fixes; False: only projections repair, and a try nothing can be
+    # projected for ends its index (the next proposal is a fresh one: a re-denoised repair succeeded
+    # less often than a fresh proposal, docs/generator.md)
+    denoise: bool = True
     # the learned verifier (diffusion/verifier.py: a checkpoint folder) whose log p(accepted) gradient
     # steers sampling beside the cost, with this weight; its weights pinned by sha256 when given
     verifier: str | None = None
@@ -332,7 +337,7 @@ class DiffusionProposer:
         from scenegen.propose.repair import repair_step, resampled_for
 
         projected = self._projected(parent, rejection, attempt)
-        if projected is not None:
+        if projected is not None or not self.settings.denoise:
             return projected
         resampled = resampled_for(rejection, parent)
         if not resampled:

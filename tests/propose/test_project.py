@@ -144,3 +144,39 @@ def test_what_has_no_projection_is_left_to_denoising(accepted, config):
     ]:
         rejection = Rejection(proposal_index=0, stage=stage, label=label, check="x", detail=detail)
         assert proj.project(accepted, rejection, config.catalog()) is None, label
+
+
+def test_without_denoising_only_projections_repair(accepted, config):
+    """generator_v3's repairs: a projection where there is one (a step named ``project``), else none,
+    so the index ends and the next proposal is fresh; at most PROJECT_RUN projections in a row."""
+    from scenegen.propose.diffusion import PROJECT_RUN, DiffusionProposer
+
+    v3 = load_pipeline("pipelines/generator_v3.yaml", {"render": False}, "retrieve the mug")
+    proposer = DiffusionProposer(v3.proposer, v3.catalog())
+    other = next(o for o in accepted.objects if o.support == "table" and o.name != accepted.target)
+    off = moved(accepted, other.name, x=0.47)
+    outside = Rejection(
+        proposal_index=0,
+        stage="check",
+        label="out_of_workspace",
+        check="workspace",
+        detail=other.name,
+        value=-0.07,
+        threshold=0.0,
+    )
+    toppled = Rejection(
+        proposal_index=0,
+        stage="tag",
+        label="condition_unmet",
+        check="condition",
+        detail="required toppled = 0.0 rad (threshold 0.785398)",
+    )
+    assert proposer.repair(off, toppled, 1) is None
+    child = off
+    for attempt in range(1, PROJECT_RUN + 1):
+        child = proposer.repair(child.model_copy(update={"objects": off.objects}), outside, attempt)
+        assert child is not None and child.repairs[-1].method == "project"
+        assert child.repairs[-1].resampled[0] == other.name
+    assert (
+        proposer.repair(child.model_copy(update={"objects": off.objects}), outside, PROJECT_RUN + 1) is None
+    )
