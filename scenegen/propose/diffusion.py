@@ -63,6 +63,7 @@ class DiffusionSettings(AssetChoice):
         "repair_labels": None,
         "project": False,
         "denoise": True,
+        "anticipate": False,
         "verifier": None,
         "verifier_sha256": None,
         "verifier_weight": 0.0,
@@ -107,6 +108,9 @@ class DiffusionSettings(AssetChoice):
     # projected for ends its index (the next proposal is a fresh one: a re-denoised repair succeeded
     # less often than a fresh proposal, docs/generator.md)
     denoise: bool = True
+    # project each proposal before its first check on what the proposer can measure itself: the
+    # request's near_edge and clutter, the workspace (propose/project.py ``anticipated``)
+    anticipate: bool = False
     # the learned verifier (diffusion/verifier.py: a checkpoint folder) whose log p(accepted) gradient
     # steers sampling beside the cost, with this weight; its weights pinned by sha256 when given
     verifier: str | None = None
@@ -465,7 +469,13 @@ class DiffusionProposer:
             substitute=self._substitute(seed, index),
             upright_off_table=s.upright_off_table,
         )
-        if not s.separate:
+        if not s.separate and not s.anticipate:
             return decoded
-        proposal = separate(decoded.proposal, self.catalog, max_shift=s.max_shift, spacing=s.spacing)
+        proposal = decoded.proposal
+        if s.separate:
+            proposal = separate(proposal, self.catalog, max_shift=s.max_shift, spacing=s.spacing)
+        if s.anticipate:
+            from scenegen.propose.project import anticipated
+
+            proposal = anticipated(proposal, self.catalog, s.max_shift)
         return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

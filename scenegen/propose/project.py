@@ -17,12 +17,14 @@ What each rejection measured, and the move it gives (``slack`` past the threshol
   when the target lies beyond the reach, outward when it lies too close;
 - a required ``near_edge`` missed by ``value - threshold`` m: the target toward its nearest table
   edge by that much; a forbidden one that holds: away from it;
+- a required ``occluded``: the tallest other object on the table set between the target and the
+  main camera, just clear of the target;
 - a required ``low_light`` (irradiance, linear in the ambient and each light's intensity): the
   lighting scaled to ``(1 - slack_light)`` of the threshold; a forbidden one: above it.
 
 An object moves with everything stacked on it, a piece of furniture with what rests on it; each
-move adds its length to the objects' ``projection_distance``. Anything else (a missing occluded,
-clutter, toppled, stacked or on_floor; unstable, fell_off; nothing named) has no projection: None.
+move adds its length to the objects' ``projection_distance``. Anything else (a missing toppled,
+stacked or on_floor; unstable, fell_off; nothing named) has no projection: None.
 The projected scene is checked again like any try. Pure: no torch, no MuJoCo, no files.
 """
 
@@ -148,10 +150,15 @@ def _away_from_arm(proposal: SceneProposal, name: str, rejection: Rejection):
 def _tags(proposal: SceneProposal, rejection: Rejection, catalog: Catalog):
     """A missed near_edge, clutter or low_light, by its measured value (any other tag: None)."""
     tags = {m[1]: (m[0], float(m[2]), float(m[3])) for m in _TAG.findall(rejection.detail)}
-    if not tags or set(tags) - {"near_edge", "clutter", "low_light"}:
+    if not tags or set(tags) - {"near_edge", "clutter", "occluded", "low_light"}:
         return None  # another tag failed too: re-denoising must change the scene anyway
     out, names = proposal, ()
-    steps = (("near_edge", _near_edge), ("clutter", _clutter), ("low_light", _low_light))
+    steps = (
+        ("near_edge", _near_edge),
+        ("clutter", _clutter),
+        ("occluded", _occluded),
+        ("low_light", _low_light),
+    )
     for tag, step in steps:
         if tag in tags:
             moved = step(out, *tags[tag], catalog)
@@ -207,6 +214,7 @@ def _root(proposal: SceneProposal, name: str) -> str | None:
 # not import; tests/propose/test_project.py checks they agree), and how far inside it a projected
 # neighbour's centre is placed
 CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06
+CLUTTER_COUNT, NEAR_EDGE = 3, 0.03  # the predicates' defaults as well (clutter_count, near_edge_distance)
 
 
 def _clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -237,6 +245,31 @@ def _clutter(proposal: SceneProposal, kind: str, value: float, threshold: float,
     apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
     names += [a.name for a, b in zip(apart.objects, out.objects, strict=True) if a != b]
     return apart, tuple(names)
+
+
+def _occluded(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """A required occluded: the tallest other object on the table (with its stack) set on the line
+    from the target to the main camera, just clear of the target, where it hides most of it from
+    the camera. A forbidden occluded: None."""
+    if kind != "required":
+        return None
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    candidates = [o for o in proposal.objects if o.name != target.name and o.support == "table"]
+    if not candidates:
+        return None
+
+    def height(o) -> float:
+        asset = catalog.get(o.asset)
+        return (asset.resting_poses[o.resting_pose].height + layout.pose_top(asset, o.resting_pose)) * o.scale
+
+    occluder = max(candidates, key=lambda o: (height(o), o.name))
+    towards = np.asarray(proposal.cameras[0].position[:2]) - np.asarray(target.position[:2])
+    towards = towards / max(float(np.hypot(*towards)), 1e-9)
+    radius = layout.footprint_radius
+    gap = radius(catalog.get(target.asset), target.resting_pose) * target.scale
+    gap += radius(catalog.get(occluder.asset), occluder.resting_pose) * occluder.scale + SLACK
+    place = np.asarray(target.position[:2]) + gap * towards
+    return _moved(proposal, occluder.name, place - np.asarray(occluder.position[:2]))
 
 
 def _low_light(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -296,3 +329,49 @@ def _moved(proposal: SceneProposal, name: str, dxy, dz: float = 0.0):
     names = [*(o.name for o in proposal.objects), *(p.name for p in proposal.furniture)]
     moved = tuple(n for n in names if n in carried)
     return proposal.model_copy(update={"objects": objects, "furniture": furniture}), moved
+
+
+def anticipated(proposal: SceneProposal, catalog: Catalog, max_shift: float = 0.05) -> SceneProposal:
+    """``proposal`` projected before any check, on what the proposer can measure itself: the
+    request's ``near_edge`` (the target's footprint margin to the table's edges, measured on its
+    convex parts as placed) and ``clutter`` (neighbours' centres within the radius less 2 cm) by the
+    same moves as their repairs, then every object on the table or floor into the workspace, and
+    overlaps pushed apart with the target held. Tags that need settling or rendering to measure
+    (toppled, stacked, occluded, low_light, on_floor) are left to the model and the checks."""
+    condition = proposal.condition
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    out, names = proposal, []
+    state = condition.tags.get("near_edge", "unspecified")
+    if state != "unspecified" and target.support != "floor":
+        margin = _edge_margin(catalog, target)
+        wrong = margin > NEAR_EDGE - SLACK if state == "required" else margin <= NEAR_EDGE + SLACK
+        moved = _near_edge(out, state, margin, NEAR_EDGE, catalog) if wrong else None
+        if moved is not None:
+            out, names = moved[0], [*names, *moved[1]]
+    if condition.tags.get("clutter") == "required":
+        centre = np.asarray(next(o for o in out.objects if o.name == out.target).position[:2])
+        near = sum(
+            float(np.hypot(*(np.asarray(o.position[:2]) - centre))) <= CLUTTER_RADIUS - 0.02
+            for o in out.objects
+            if o.name != out.target
+        )
+        moved = _clutter(out, "required", near, CLUTTER_COUNT, catalog) if near < CLUTTER_COUNT else None
+        if moved is not None:
+            out, names = moved[0], [*names, *moved[1]]
+    out, _ = _in_workspace(out, tuple(o.name for o in out.objects))
+    if names:
+        out = separate(out, catalog, max_shift=max_shift, spacing=True, fixed=frozenset({out.target}))
+        out, _ = _in_workspace(out, tuple(o.name for o in out.objects))
+    return out
+
+
+def _edge_margin(catalog: Catalog, obj) -> float:
+    """The near_edge predicate's value for ``obj`` as placed: the smallest distance from its convex
+    parts' vertices to a table edge (m; negative past it)."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.rotations import quat_to_matrix
+
+    rot = quat_to_matrix(obj.quat)
+    pts = np.concatenate(convex_part_vertices(catalog, obj.asset)) * obj.scale @ rot.T + obj.position
+    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
+    return float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
