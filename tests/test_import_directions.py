@@ -227,7 +227,7 @@ def test_the_proposers_import_no_stage_and_no_back_end():
     MuJoCo back end and the runner: they import only the core, the schema, the catalog, each other
     and the generator's sampling modules."""
     allowed = CORE_MAY_IMPORT + ("scenegen.propose", "scenegen.diffusion.")
-    below = ("encoding", "cost", "model", "sample", "data")
+    below = ("encoding", "cost", "model", "sample", "data", "verifier")
     for path in sorted((PACKAGE / "propose").glob("*.py")):
         for module in imports(path):
             if module.startswith("scenegen.") and module != "scenegen.propose":

@@ -10,6 +10,8 @@ import pytest
 from scenegen.check.geometry import CheckSettings, run_checks
 from scenegen.core import layout
 from scenegen.propose import project as proj
+from scenegen.propose import tag_projection as tp
+from scenegen.propose.moves import SLACK
 from scenegen.runner.config import load_pipeline
 from scenegen.runner.process import process_proposal
 from scenegen.schema.condition import Condition
@@ -25,7 +27,7 @@ def config():
 @pytest.fixture(scope="module")
 def accepted(config):
     """A procedural proposal of a mug on the table, 10 cm or more from its edges, that the pipeline
-    accepts, with three or more other objects on the table."""
+    accepts, with three or more other objects on the table, one of them a stack base within reach."""
     from scenegen.propose.procedural import ProceduralProposer
 
     proposer = ProceduralProposer(config.proposer, config.catalog())
@@ -33,7 +35,10 @@ def accepted(config):
         target = next(o for o in proposal.objects if o.name == proposal.target)
         on_table = [o for o in proposal.objects if o.support == "table" and o.name != proposal.target]
         inside = abs(target.position[0]) < 0.25 and abs(target.position[1]) < 0.35  # 10 cm off every edge
-        if target.support != "table" or len(on_table) < 3 or not inside:
+        base = any(
+            layout.is_stack_base(config.catalog().get(o.asset)) and o.position[0] < 0.15 for o in on_table
+        )
+        if target.support != "table" or len(on_table) < 3 or not inside or not base:
             continue
         if process_proposal(proposal, config, config.catalog(), export=False).record is not None:
             return proposal
@@ -66,9 +71,10 @@ def moved(proposal, name, x=None, y=None):
 
 
 def test_the_constants_agree_with_the_checks_and_predicates():
-    assert proj.CLUTTER_RADIUS == TagSettings().clutter_radius
-    assert proj.CLUTTER_COUNT == TagSettings().clutter_count
-    assert proj.NEAR_EDGE == TagSettings().near_edge_distance
+    assert tp.CLUTTER_RADIUS == TagSettings().clutter_radius
+    assert tp.CLUTTER_COUNT == TagSettings().clutter_count
+    assert tp.NEAR_EDGE == TagSettings().near_edge_distance
+    assert tp.LOW_LIGHT == TagSettings().low_light_irradiance
     assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
 
 
@@ -90,7 +96,7 @@ def test_out_of_the_workspace_moved_back_inside(accepted, config):
     fixed, names = proj.project(off, rejection, config.catalog())
     assert names[0] == other.name
     back, _ = run_checks(fixed, config.catalog(), config.checks)
-    assert back[0].passed and back[0].value >= proj.SLACK - 1e-6
+    assert back[0].passed and back[0].value >= SLACK - 1e-6
     placed = next(o for o in fixed.objects if o.name == other.name)
     assert placed.projection_distance > 0.07  # the move is in its provenance
 
@@ -103,8 +109,11 @@ def test_a_missed_near_edge_moved_by_its_margin_then_holds(accepted, config):
     fixed, names = proj.project(accepted, first.rejection, config.catalog())
     assert accepted.target in names
     after = outcome(fixed, config, near_edge="required")
-    tags = after.record.tags if after.record is not None else None
+    if after.record is None and after.rejection.label == "collision":  # moved into a neighbour: apart
+        fixed, _ = proj.project(fixed, after.rejection, config.catalog())
+        after = outcome(fixed, config, near_edge="required")
     assert after.record is not None, after.rejection.detail
+    tags = after.record.tags
     assert tags["near_edge"].holds and tags["near_edge"].value <= TagSettings().near_edge_distance
 
 
@@ -135,10 +144,10 @@ def test_a_missed_clutter_brings_the_nearest_others_in(accepted, config):
 
 def test_what_has_no_projection_is_left_to_denoising(accepted, config):
     for label, detail, stage in [
-        ("condition_unmet", "required toppled = 0.0 rad (threshold 0.785398)", "tag"),
+        ("condition_unmet", "forbidden clutter = 4.0 objects (threshold 3.0)", "tag"),
         (
             "condition_unmet",
-            "required near_edge = 0.2 m (threshold 0.03); required toppled = 0.1 rad (threshold 0.785398)",
+            "required near_edge = 0.2 m (threshold 0.03); forbidden occluded = 0.7 fraction (threshold 0.5)",
             "tag",
         ),
         ("unstable", "not still within max_time", "settle"),
@@ -166,14 +175,14 @@ def test_without_denoising_only_projections_repair(accepted, config):
         value=-0.07,
         threshold=0.0,
     )
-    toppled = Rejection(
+    crowded = Rejection(
         proposal_index=0,
         stage="tag",
         label="condition_unmet",
         check="condition",
-        detail="required toppled = 0.0 rad (threshold 0.785398)",
+        detail="forbidden clutter = 4.0 objects (threshold 3.0)",
     )
-    assert proposer.repair(off, toppled, 1) is None
+    assert proposer.repair(off, crowded, 1) is None
     child = off
     for attempt in range(1, PROJECT_RUN + 1):
         child = proposer.repair(child.model_copy(update={"objects": off.objects}), outside, attempt)
@@ -210,7 +219,7 @@ def test_anticipated_places_the_request_s_geometric_tags_before_any_check(accept
     asked = accepted.model_copy(update={"condition": condition})
     placed = proj.anticipated(asked, config.catalog())
     target = next(o for o in placed.objects if o.name == placed.target)
-    assert proj._edge_margin(config.catalog(), target) <= proj.NEAR_EDGE
+    assert tp.edge_margin(config.catalog(), target) <= tp.NEAR_EDGE
     result = process_proposal(placed, config, config.catalog(), False)
     if result.record is None:  # settling or a push apart may still undo it: the repairs' business
         assert result.rejection.label in ("collision", "unstable", "condition_unmet"), result.rejection
@@ -218,3 +227,29 @@ def test_anticipated_places_the_request_s_geometric_tags_before_any_check(accept
         assert result.record.tags["near_edge"].holds and result.record.tags["clutter"].holds
     plain = accepted.model_copy(update={"condition": Condition(task="retrieve", target="mug")})
     assert proj.anticipated(plain, config.catalog()) == plain  # nothing asked, nothing outside: unchanged
+
+
+@pytest.mark.parametrize("tag", ["toppled", "stacked", "on_floor", "low_light"])
+def test_a_missed_discrete_tag_or_light_is_met_after_settling(accepted, config, tag):
+    """toppled (the likeliest pose that is not upright), stacked (onto the nearest free stack base),
+    on_floor (onto the floor strip), low_light (the unshadowed bound projected below the threshold)
+    projected before any check; the real predicates measure the tag on the settled scene."""
+    plain = accepted.model_copy(update={"condition": Condition(task="retrieve", target="mug")})
+    state = "forbidden" if tp.before_check(plain, tag, config.catalog())[2] else "required"
+    condition = Condition(task="retrieve", target="mug", tags={tag: state})
+    asked = accepted.model_copy(update={"condition": condition})
+    placed = proj.anticipated(asked, config.catalog())
+    assert tp.before_check(placed, tag, config.catalog())[2] == (state == "required")
+    result = process_proposal(placed, config, config.catalog(), False)
+    if tag == "stacked" and result.record is None:  # a base too small or round may not hold it still
+        assert result.rejection.label in ("unstable", "fell_off", "condition_unmet"), result.rejection
+        return
+    assert result.record is not None, result.rejection
+    assert result.record.tags[tag].holds == (state == "required")
+
+
+def test_the_light_bound_is_at_least_what_the_predicate_measures(accepted, config):
+    """No shadow in the bound: it is at or above the settled scene's measured irradiance."""
+    result = process_proposal(accepted, config, config.catalog(), False)
+    measured = result.record.tags["low_light"].value
+    assert tp.irradiance_bound(accepted, config.catalog()) >= measured - 1e-3

@@ -1,0 +1,327 @@
+"""Projections of the request's tags: a rare tag a scene missed (or held against the request) moved
+onto by the margin its predicate measured, or by the discrete change that makes it hold, each
+derived from the predicate's own definition (tags/predicates.py). What propose/project.py applies
+after a ``condition_unmet`` rejection and, where the proposer can measure the tag itself, before the
+first check (``anticipated``). Pure: numpy, the layout, the catalog and the schema.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scenegen.assets.catalog import Catalog
+from scenegen.core import layout
+from scenegen.propose.moves import SLACK, moved, root
+from scenegen.propose.separate import separate
+from scenegen.schema.scene import SceneProposal
+
+SLACK_LIGHT = 0.1  # share of the low_light threshold a projected irradiance lies below (or above) it
+
+
+def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The target, with what holds it up (the furniture piece or the stack under it), toward the
+    nearest table edge it stays in reach at by the margin missing (required), or away from its
+    nearest edge by the excess (forbidden)."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    base = root(proposal, target.name)
+    if base is None:
+        return None
+    x, y = target.position[:2]
+    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
+    gaps = {(1.0, 0.0): hx - x, (-1.0, 0.0): hx + x, (0.0, 1.0): hy - y, (0.0, -1.0): hy + y}
+    if kind == "forbidden":
+        direction = np.asarray(min(gaps, key=gaps.get))
+        return moved(proposal, base, -(threshold - value + SLACK) * direction)
+    by = value - threshold + SLACK
+    shoulder = np.asarray(layout.SHOULDER)
+    for direction in sorted(gaps, key=gaps.get):  # the nearest edge whose side keeps it in reach
+        there = np.asarray(target.position) + by * np.array([*direction, 0.0])
+        if float(np.linalg.norm(there - shoulder)) <= layout.REACH[1] - SLACK:
+            return moved(proposal, base, by * np.asarray(direction))
+    return None
+
+
+CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06
+CLUTTER_COUNT, NEAR_EDGE = 3, 0.03  # the predicates' defaults as well (clutter_count, near_edge_distance)
+
+
+def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """A required clutter missing ``threshold - value`` neighbours: that many of the nearest other
+    objects on the table (with their stacks) moved toward the target to CLUTTER_AIM inside the
+    radius, then pushed apart where they overlap (``separate``, the target held). A forbidden
+    clutter: None."""
+    if kind != "required":
+        return None
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    centre = np.asarray(target.position[:2])
+    distance = {
+        o.name: float(np.hypot(*(np.asarray(o.position[:2]) - centre)))
+        for o in proposal.objects
+        if o.name != target.name and o.support == "table"
+    }
+    outside = sorted((d, n) for n, d in distance.items() if d > CLUTTER_RADIUS)
+    need = int(round(threshold - value))
+    if need < 1 or len(outside) < need:
+        return None
+    out, names = proposal, []
+    aim = CLUTTER_RADIUS - CLUTTER_AIM
+    for d, name in outside[:need]:
+        obj = next(o for o in out.objects if o.name == name)
+        towards = centre - np.asarray(obj.position[:2])
+        out, shifted = moved(out, name, (d - aim) * towards / d)
+        names += shifted
+    apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
+    names += [a.name for a, b in zip(apart.objects, out.objects, strict=True) if a != b]
+    return apart, tuple(names)
+
+
+def occluded(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """A required occluded: the tallest other object on the table (with its stack) set on the line
+    from the target to the main camera, just clear of the target, where it hides most of it from
+    the camera. A forbidden occluded: None."""
+    if kind != "required":
+        return None
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    candidates = [o for o in proposal.objects if o.name != target.name and o.support == "table"]
+    if not candidates:
+        return None
+
+    def height(o) -> float:
+        asset = catalog.get(o.asset)
+        return (asset.resting_poses[o.resting_pose].height + layout.pose_top(asset, o.resting_pose)) * o.scale
+
+    occluder = max(candidates, key=lambda o: (height(o), o.name))
+    towards = np.asarray(proposal.cameras[0].position[:2]) - np.asarray(target.position[:2])
+    towards = towards / max(float(np.hypot(*towards)), 1e-9)
+    radius = layout.footprint_radius
+    gap = radius(catalog.get(target.asset), target.resting_pose) * target.scale
+    gap += radius(catalog.get(occluder.asset), occluder.resting_pose) * occluder.scale + SLACK
+    place = np.asarray(target.position[:2]) + gap * towards
+    return moved(proposal, occluder.name, place - np.asarray(occluder.position[:2]))
+
+
+def low_light(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The lighting scaled to SLACK_LIGHT below the threshold (required) or above it (forbidden)."""
+    if value <= 0:
+        return None
+    aim = threshold * (1 - SLACK_LIGHT if kind == "required" else 1 + SLACK_LIGHT)
+    return lit(proposal, aim / value), ("lights",)
+
+
+def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
+    """The scene's ambient light and every light's intensity scaled by ``factor``."""
+    lighting = proposal.lighting
+    lights = tuple(
+        light.model_copy(update={"intensity": round(min(light.intensity * factor, 3.0), 6)})
+        for light in lighting.lights
+    )
+    ambient = tuple(round(min(a * factor, 1.0), 6) for a in lighting.ambient)
+    lit = lighting.model_copy(update={"lights": lights, "ambient": ambient})
+    return proposal.model_copy(update={"lighting": lit})
+
+
+def edge_margin(catalog: Catalog, obj) -> float:
+    """The near_edge predicate's value for ``obj`` as placed: the smallest distance from its convex
+    parts' vertices to a table edge (m; negative past it)."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.rotations import quat_to_matrix
+
+    rot = quat_to_matrix(obj.quat)
+    pts = np.concatenate(convex_part_vertices(catalog, obj.asset)) * obj.scale @ rot.T + obj.position
+    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
+    return float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
+
+
+def _resting(proposal: SceneProposal, catalog: Catalog, pose: int | None, support: str, xy, surface_z: float):
+    """The target re-placed: resting pose ``pose`` (None: its own) at its yaw, on ``support`` at
+    ``xy``, its centre at the surface's height plus the pose's; None when something rests on it."""
+    from scenegen.core.placement import quat_mul, yaw_quat
+
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    if any(o.support == target.name for o in proposal.objects):
+        return None
+    asset = catalog.get(target.asset)
+    pose = target.resting_pose if pose is None else pose
+    rest_now = np.asarray(asset.resting_poses[target.resting_pose].quat)
+    rel = quat_mul(np.asarray(target.quat), rest_now * np.array([1, -1, -1, -1]))
+    yaw = 2 * np.arctan2(rel[3], rel[0])
+    quat = quat_mul(yaw_quat(float(yaw)), np.asarray(asset.resting_poses[pose].quat))
+    quat = quat if quat[0] >= 0 else -quat
+    position = (float(xy[0]), float(xy[1]), surface_z + asset.resting_poses[pose].height * target.scale)
+    distance = float(np.linalg.norm(np.subtract(position, target.position)))
+    placed = target.model_copy(
+        update={
+            "position": tuple(round(v, 6) for v in position),
+            "quat": tuple(round(float(v), 7) for v in quat),
+            "resting_pose": pose,
+            "support": support,
+            "projection_distance": round(float(np.hypot(target.projection_distance, distance)), 6),
+        }
+    )
+    objects = tuple(placed if o.name == target.name else o for o in proposal.objects)
+    return proposal.model_copy(update={"objects": objects}), (target.name,)
+
+
+def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The target laid in its likeliest resting pose that is not upright (required), or that is
+    (forbidden), where it stands; None when it has none."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    asset = catalog.get(target.asset)
+    want_upright = kind != "required"
+    poses = [i for i, p in enumerate(asset.resting_poses) if p.upright == want_upright]
+    if not poses or asset.orientation_free:
+        return None
+    pose = max(poses, key=lambda i: (asset.resting_poses[i].probability, -i))
+    surface_z = target.position[2] - asset.resting_poses[target.resting_pose].height * target.scale
+    return _resting(proposal, catalog, pose, target.support, target.position[:2], surface_z)
+
+
+def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The target set on top of the nearest other object on the table that can carry it (a stack
+    base with nothing on it), at its top's centre (required); or, stacked against the request, set
+    on the table beside what carries it (forbidden)."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    here = np.asarray(target.position[:2])
+    if kind == "required":
+        bases = [
+            o
+            for o in proposal.objects
+            if o.name != target.name
+            and o.support == "table"
+            and layout.is_stack_base(catalog.get(o.asset))
+            and not any(p.support == o.name for p in proposal.objects)
+        ]
+        shoulder = np.asarray(layout.SHOULDER)
+        height = catalog.get(target.asset).resting_poses[target.resting_pose].height * target.scale
+
+        def reachable(base) -> bool:  # the target's centre on the base's top within the arm's reach
+            top = layout.object_top_surface(catalog, base)
+            there = np.array([*top.center, top.z + height])
+            return float(np.linalg.norm(there - shoulder)) <= layout.REACH[1] - 3 * SLACK
+
+        bases = [o for o in bases if reachable(o)]
+        if not bases:
+            return None
+        base = min(bases, key=lambda o: (float(np.hypot(*(np.asarray(o.position[:2]) - here))), o.name))
+        top = layout.object_top_surface(catalog, base)
+        return _resting(proposal, catalog, None, base.name, top.center, top.z)
+    carrier = next((o for o in proposal.objects if o.name == target.support), None)
+    if carrier is None:
+        return None
+    away = here - np.asarray(layout.SHOULDER[:2])
+    away = away / max(float(np.hypot(*away)), 1e-9)
+    gap = layout.footprint_radius(catalog.get(carrier.asset), carrier.resting_pose) * carrier.scale
+    gap += layout.footprint_radius(catalog.get(target.asset), target.resting_pose) * target.scale + SLACK
+    xy = np.asarray(carrier.position[:2]) - gap * away  # toward the arm, off the carrier
+    return _resting(proposal, catalog, None, "table", xy, layout.TABLE_TOP_Z)
+
+
+def on_floor(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The target on the floor strip beside the table, level with where it was (required), or back on
+    the table near that edge (forbidden)."""
+    from scenegen.propose.moves import into
+
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    if kind == "required":
+        xy = into(layout.FLOOR, (target.position[0], layout.FLOOR.center[1]))
+        return _resting(proposal, catalog, None, "floor", xy, layout.FLOOR.z)
+    table = layout.support_surfaces(())["table"]
+    xy = into(table, (target.position[0], table.half[1] - 0.1))
+    return _resting(proposal, catalog, None, "table", xy, layout.TABLE_TOP_Z)
+
+
+def under_overhang(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """The target, with what carries it on the table, moved under the middle of the highest board of
+    the scene's furniture (required) when it fits beneath it; a forbidden one: None."""
+    if kind != "required":
+        return None
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    base = root(proposal, target.name)
+    boards = [box for piece in proposal.furniture for box in layout.furniture_boxes(piece)]
+    if base is None or base in {p.name for p in proposal.furniture} or not boards:
+        return None
+    centre, _, half = max(boards, key=lambda b: float(b[0][2] - b[2][2]))
+    asset = catalog.get(target.asset)
+    top = target.position[2] + layout.pose_top(asset, target.resting_pose) * target.scale
+    if top >= centre[2] - half[2] - SLACK:
+        return None  # it would not fit beneath the board
+    return moved(proposal, base, np.asarray(centre[:2]) - np.asarray(target.position[:2]))
+
+
+# MuJoCo's spot light defaults, which sim/world.py keeps (diffusion/cost.py SPOT_CUTOFF, SPOT_EXPONENT)
+SPOT_CUTOFF_DEG, SPOT_EXPONENT = 45.0, 10.0
+
+
+def irradiance_bound(proposal: SceneProposal, catalog: Catalog) -> float:
+    """The low_light predicate's irradiance at the target's top as placed, with no light shadowed: an
+    upper bound of what the predicate measures (a shadow only takes light away)."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.rotations import quat_to_matrix
+
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    rot = quat_to_matrix(target.quat)
+    pts = np.concatenate(convex_part_vertices(catalog, target.asset)) * target.scale @ rot.T + target.position
+    point = np.array([pts[:, 0].mean(), pts[:, 1].mean(), pts[:, 2].max() + 1e-3])
+    total = float(np.mean(proposal.lighting.ambient))
+    for light in proposal.lighting.lights:
+        to_light = np.asarray(light.position) - point
+        direction = to_light / np.linalg.norm(to_light)
+        axis = np.asarray(light.direction) / np.linalg.norm(light.direction)
+        cos_spot = float(np.dot(-direction, axis))
+        if cos_spot < np.cos(np.radians(SPOT_CUTOFF_DEG)):
+            continue
+        total += (
+            float(np.mean(light.colour)) * light.intensity * cos_spot**SPOT_EXPONENT * max(0.0, direction[2])
+        )
+    return total
+
+
+def before_check(proposal: SceneProposal, tag: str, catalog: Catalog) -> tuple[float, float, bool] | None:
+    """(value, threshold, holds) of ``tag``'s predicate as the proposer can measure it on the scene as
+    placed, before settling; None for a tag it cannot (occluded). The discrete tags read the
+    placement: toppled a resting pose that is not upright, stacked a support that is an object,
+    on_floor the floor; low_light uses :func:`irradiance_bound` and holds only when the bound does."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    objects = {o.name for o in proposal.objects}
+    asset = catalog.get(target.asset)
+    if tag == "near_edge":
+        if target.support == "floor":
+            return None
+        value = edge_margin(catalog, target)
+        return value, NEAR_EDGE, value <= NEAR_EDGE - SLACK
+    if tag == "clutter":
+        centre = np.asarray(target.position[:2])
+        value = sum(
+            float(np.hypot(*(np.asarray(o.position[:2]) - centre))) <= CLUTTER_RADIUS - 0.02
+            for o in proposal.objects
+            if o.name != target.name
+        )
+        return float(value), float(CLUTTER_COUNT), value >= CLUTTER_COUNT
+    if tag == "low_light":
+        value = irradiance_bound(proposal, catalog)
+        return value, LOW_LIGHT, value < LOW_LIGHT * (1 - SLACK_LIGHT / 2)
+    if tag == "toppled":
+        flat = not asset.resting_poses[target.resting_pose].upright and not asset.orientation_free
+        return float(flat), 0.5, flat
+    if tag == "stacked":
+        return float(target.support in objects), 0.5, target.support in objects
+    if tag == "on_floor":
+        return float(target.support == "floor"), 0.5, target.support == "floor"
+    if tag == "under_overhang":
+        return None  # measured by the checks: moving under a board is the repair's
+    return None
+
+
+LOW_LIGHT = 0.25  # the predicate's default (tags/predicates.py low_light_irradiance)
+# Each tag's projection, in the order a scene's missed tags are projected: the target's place and pose
+# first, then what is around it, then the light.
+STEPS = {
+    "on_floor": on_floor,
+    "stacked": stacked,
+    "toppled": toppled,
+    "under_overhang": under_overhang,
+    "near_edge": near_edge,
+    "clutter": clutter,
+    "occluded": occluded,
+    "low_light": low_light,
+}
