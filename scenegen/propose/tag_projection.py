@@ -177,27 +177,32 @@ def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, 
 
 
 def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """The target set on top of the nearest other object on the table that can carry it (a stack
-    base with nothing on it), at its top's centre (required); or, stacked against the request, set
+    """The target set on top of the nearest other object on its ground (the table, or the floor when
+    it lies there) that can carry it (a stack base with nothing on it, in reach), at its top's centre
+    (required); or, stacked against the request, set
     on the table beside what carries it (forbidden)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     here = np.asarray(target.position[:2])
     if kind == "required":
+        ground = "floor" if target.support == "floor" else "table"  # on_floor projected first
         bases = [
             o
             for o in proposal.objects
             if o.name != target.name
-            and o.support == "table"
+            and o.support == ground
             and layout.is_stack_base(catalog.get(o.asset))
             and not any(p.support == o.name for p in proposal.objects)
         ]
         shoulder = np.asarray(layout.SHOULDER)
-        height = catalog.get(target.asset).resting_poses[target.resting_pose].height * target.scale
+        asset = catalog.get(target.asset)
+        height = asset.resting_poses[target.resting_pose].height * target.scale
+        above = layout.pose_top(asset, target.resting_pose) * target.scale
 
-        def reachable(base) -> bool:  # the target's centre on the base's top within the arm's reach
+        def reachable(base) -> bool:  # the target's centre or top on the base within the arm's reach
             top = layout.object_top_surface(catalog, base)
-            there = np.array([*top.center, top.z + height])
-            return float(np.linalg.norm(there - shoulder)) <= layout.REACH[1] - 3 * SLACK
+            centre = np.array([*top.center, top.z + height])
+            near = min(np.linalg.norm(centre - shoulder), np.linalg.norm(centre + [0, 0, above] - shoulder))
+            return float(near) <= layout.REACH[1] - 3 * SLACK
 
         bases = [o for o in bases if reachable(o)]
         if not bases:
