@@ -19,7 +19,8 @@ Per proposer: median and 90th percentile of tries and CPU-s per accepted scene o
 (a request left unfilled counts its tries over max(accepted, 1), so an empty one is not dropped),
 and how many were filled and refused. The held-out half is for the final report only: it runs with
 --half heldout --final, never to choose a setting. CPU is process + children user + system time,
-BLAS and OpenMP at one thread. Prints a table, saves JSON.
+BLAS and OpenMP at one thread. Prints a table, saves JSON; each row is also appended to
+JSON's ``.rows.jsonl`` as it is measured, and a rerun of the same command asks only what is missing.
 """
 
 from __future__ import annotations
@@ -106,11 +107,26 @@ def columns(proposers, recipe: Path, also=()) -> dict[str, tuple[Path, str | Non
 
 
 def run_suite(
-    requests: list[Request], proposers, recipe: Path, scenes: int, cap: int, seed: int, log=print, also=()
+    requests: list[Request],
+    proposers,
+    recipe: Path,
+    scenes: int,
+    cap: int,
+    seed: int,
+    log=print,
+    also=(),
+    rows_file: Path | None = None,
 ) -> dict:
     """Every request asked of every column (:func:`columns`); per column its rows and their summary.
-    The diffusion checkpoint is loaded (and torch set up) once first, outside every timed batch."""
+    The diffusion checkpoint is loaded (and torch set up) once first, outside every timed batch.
+    ``rows_file``: each row is appended there as it is measured, and rows found there (same column,
+    request, scenes, cap and seed) are not asked again: a killed run resumes."""
     table = columns(proposers, recipe, also)
+    done = {}
+    if rows_file is not None and rows_file.exists():
+        for line in rows_file.read_text().splitlines():
+            row = json.loads(line)
+            done[row["key"]] = row["row"]
     if requests and any((kind or "diffusion") == "diffusion" for _, kind in table.values()):
         from scenegen.assets.catalog import load_catalog
         from scenegen.propose.base import PROPOSERS
@@ -120,7 +136,13 @@ def run_suite(
     results: dict = {name: {"recipe": str(path), "rows": []} for name, (path, _) in table.items()}
     for number, request in enumerate(requests):
         for name, (path, kind) in table.items():
-            row = {"request": request.as_dict(), **ask(path, request, kind, scenes, cap, seed)}
+            key = json.dumps([name, request.text, list(request.robot_pose), scenes, cap, seed])
+            row = done.get(key)
+            if row is None:
+                row = {"request": request.as_dict(), **ask(path, request, kind, scenes, cap, seed)}
+                if rows_file is not None:
+                    with rows_file.open("a") as f:
+                        f.write(json.dumps({"key": key, "row": row}) + "\n")
             results[name]["rows"].append(row)
             shown = row["refused"] or f"{row['accepted']} scenes, {row['tries']} tries, {row['cpu_s']} CPU-s"
             log(f"[{number + 1}/{len(requests)}] {name:10s} {request.text}: {shown}")
@@ -154,8 +176,18 @@ def main() -> None:
 
     torch.set_num_threads(1)
     requests = suite(load_rows(args.reference, "train"), args.half, args.count)[: args.limit]
+    target = args.json or ROOT / "benchmarks" / "results" / f"request_suite_{args.half}.json"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    rows_file = target.with_suffix(".rows.jsonl")  # measured rows as they come: a rerun resumes
     results = run_suite(
-        requests, args.proposers, args.recipe, args.scenes, args.cap, args.seed, also=args.also
+        requests,
+        args.proposers,
+        args.recipe,
+        args.scenes,
+        args.cap,
+        args.seed,
+        also=args.also,
+        rows_file=rows_file,
     )
     print(f"\n{args.half} half, {len(requests)} requests, {args.scenes} scenes each, cap {args.cap} tries")
     print("| proposer | filled | empty | refused | tries/scene median | p90 | CPU-s/scene median | p90 |")
@@ -167,8 +199,6 @@ def main() -> None:
             f"| {proposer} | {s['filled']} | {s['empty']} | {s['refused']} | {t.get('median')} | "
             f"{t.get('p90')} | {c.get('median')} | {c.get('p90')} |"
         )
-    target = args.json or ROOT / "benchmarks" / "results" / f"request_suite_{args.half}.json"
-    target.parent.mkdir(parents=True, exist_ok=True)
     meta = {
         "half": args.half,
         "count": len(requests),

@@ -95,8 +95,23 @@ def test_the_benchmark_asks_each_proposer_and_counts_tries_per_scene(rows, tmp_p
         0,
         log=lambda _: None,
         also=[tmp_path / "projecting.yaml"],
+        rows_file=tmp_path / "rows.jsonl",
     )
     assert set(results) == {"diffusion", "procedural", "diffusion[projecting]"}
+    assert len((tmp_path / "rows.jsonl").read_text().splitlines()) == 3
+    asked = []
+    again = bench.run_suite(
+        [request],
+        ["diffusion", "procedural"],
+        bench.ROOT / "pipelines" / "demo.yaml",
+        1,
+        12,
+        0,
+        log=asked.append,
+        also=[tmp_path / "projecting.yaml"],
+        rows_file=tmp_path / "rows.jsonl",
+    )
+    assert again == results  # resumed from the rows file: nothing asked twice
     for block in results.values():
         (row,) = block["rows"]
         assert row["refused"] is None and 1 <= row["tries"] <= 12
