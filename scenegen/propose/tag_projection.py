@@ -123,11 +123,7 @@ def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
 def edge_margin(catalog: Catalog, obj) -> float:
     """The near_edge predicate's value for ``obj`` as placed: the smallest distance from its convex
     parts' vertices to a table edge (m; negative past it)."""
-    from scenegen.assets.catalog import convex_part_vertices
-    from scenegen.core.rotations import quat_to_matrix
-
-    rot = quat_to_matrix(obj.quat)
-    pts = np.concatenate(convex_part_vertices(catalog, obj.asset)) * obj.scale @ rot.T + obj.position
+    pts = _placed_vertices(catalog, obj)
     hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
     return float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
 
@@ -237,15 +233,19 @@ def on_floor(proposal: SceneProposal, kind: str, value: float, threshold: float,
 
 def under_overhang(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """The target, with what carries it on the table, moved under the middle of the highest board of
-    the scene's furniture (required) when it fits beneath it; a forbidden one: None."""
-    if kind != "required":
-        return None
+    the scene's furniture when it fits beneath it (required), or out from under it toward the arm
+    (forbidden)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     base = root(proposal, target.name)
     boards = [box for piece in proposal.furniture for box in layout.furniture_boxes(piece)]
     if base is None or base in {p.name for p in proposal.furniture} or not boards:
         return None
-    centre, _, half = max(boards, key=lambda b: float(b[0][2] - b[2][2]))
+    centre, rot, half = max(boards, key=lambda b: float(b[0][2] - b[2][2]))
+    if kind != "required":
+        radius = layout.footprint_radius(catalog.get(target.asset), target.resting_pose) * target.scale
+        local = rot.T @ (np.asarray(target.position) - centre)
+        local[0] = -(half[0] + radius + SLACK)  # the board's near side, toward the arm
+        return moved(proposal, base, (centre + rot @ local)[:2] - np.asarray(target.position[:2]))
     asset = catalog.get(target.asset)
     top = target.position[2] + layout.pose_top(asset, target.resting_pose) * target.scale
     if top >= centre[2] - half[2] - SLACK:
@@ -260,12 +260,8 @@ SPOT_CUTOFF_DEG, SPOT_EXPONENT = 45.0, 10.0
 def irradiance_bound(proposal: SceneProposal, catalog: Catalog) -> float:
     """The low_light predicate's irradiance at the target's top as placed, with no light shadowed: an
     upper bound of what the predicate measures (a shadow only takes light away)."""
-    from scenegen.assets.catalog import convex_part_vertices
-    from scenegen.core.rotations import quat_to_matrix
-
     target = next(o for o in proposal.objects if o.name == proposal.target)
-    rot = quat_to_matrix(target.quat)
-    pts = np.concatenate(convex_part_vertices(catalog, target.asset)) * target.scale @ rot.T + target.position
+    pts = _placed_vertices(catalog, target)
     point = np.array([pts[:, 0].mean(), pts[:, 1].mean(), pts[:, 2].max() + 1e-3])
     total = float(np.mean(proposal.lighting.ambient))
     for light in proposal.lighting.lights:
@@ -313,11 +309,39 @@ def before_check(proposal: SceneProposal, tag: str, catalog: Catalog) -> tuple[f
     if tag == "on_floor":
         return float(target.support == "floor"), 0.5, target.support == "floor"
     if tag == "under_overhang":
-        return None  # measured by the checks: moving under a board is the repair's
+        value = overhang_cover(proposal, catalog)
+        return value, OVERHANG_COVER, value >= OVERHANG_COVER
     return None
 
 
+def overhang_cover(proposal: SceneProposal, catalog: Catalog) -> float:
+    """The under_overhang predicate's value for the target as placed: the share of its convex parts'
+    vertices that have a furniture box above its top."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    pts = _placed_vertices(catalog, target)
+    top = pts[:, 2].max()
+    boxes = [box for piece in proposal.furniture for box in layout.furniture_boxes(piece)]
+    covered = 0
+    for p in pts:
+        for centre, rot, half in boxes:
+            local = rot.T @ (p - centre)
+            if np.all(np.abs(local[:2]) <= half[:2]) and centre[2] - half[2] > top:
+                covered += 1
+                break
+    return covered / len(pts)
+
+
+def _placed_vertices(catalog: Catalog, obj) -> np.ndarray:
+    """The world-frame vertices (N, 3) of an object's convex parts as placed."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.rotations import quat_to_matrix
+
+    rot = quat_to_matrix(obj.quat)
+    return np.concatenate(convex_part_vertices(catalog, obj.asset)) * obj.scale @ rot.T + obj.position
+
+
 LOW_LIGHT = 0.25  # the predicate's default (tags/predicates.py low_light_irradiance)
+OVERHANG_COVER = 0.5  # the predicate's default (overhang_cover)
 # Each tag's projection, in the order a scene's missed tags are projected: the target's place and pose
 # first, then what is around it, then the light.
 STEPS = {

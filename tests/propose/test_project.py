@@ -75,6 +75,7 @@ def test_the_constants_agree_with_the_checks_and_predicates():
     assert tp.CLUTTER_COUNT == TagSettings().clutter_count
     assert tp.NEAR_EDGE == TagSettings().near_edge_distance
     assert tp.LOW_LIGHT == TagSettings().low_light_irradiance
+    assert tp.OVERHANG_COVER == TagSettings().overhang_cover
     assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
 
 
@@ -229,7 +230,7 @@ def test_anticipated_places_the_request_s_geometric_tags_before_any_check(accept
     assert proj.anticipated(plain, config.catalog()) == plain  # nothing asked, nothing outside: unchanged
 
 
-@pytest.mark.parametrize("tag", ["toppled", "stacked", "on_floor", "low_light"])
+@pytest.mark.parametrize("tag", ["toppled", "stacked", "on_floor", "low_light", "under_overhang"])
 def test_a_missed_discrete_tag_or_light_is_met_after_settling(accepted, config, tag):
     """toppled (the likeliest pose that is not upright), stacked (onto the nearest free stack base),
     on_floor (onto the floor strip), low_light (the unshadowed bound projected below the threshold)
