@@ -46,10 +46,10 @@ CLUTTER_COUNT, NEAR_EDGE = 3, 0.03  # the predicates' defaults as well (clutter_
 
 
 def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """A required clutter missing ``threshold - value`` neighbours: that many of the nearest other
-    objects on the table (with their stacks) moved toward the target to CLUTTER_AIM inside the
-    radius, then pushed apart where they overlap (``separate``, the target held). A forbidden
-    clutter: None."""
+    """A required clutter: as many of the nearest other objects on the table (with their stacks) as
+    the scene as placed lacks within the radius less 2 cm moved toward the target to CLUTTER_AIM
+    inside the radius, then pushed apart where they overlap (``separate``, the target held). A
+    forbidden clutter: None."""
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
@@ -57,10 +57,11 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     distance = {
         o.name: float(np.hypot(*(np.asarray(o.position[:2]) - centre)))
         for o in proposal.objects
-        if o.name != target.name and o.support == "table"
+        if o.name != target.name
     }
-    outside = sorted((d, n) for n, d in distance.items() if d > CLUTTER_RADIUS)
-    need = int(round(threshold - value))
+    near = CLUTTER_RADIUS - 0.02  # counted as placed, 2 cm inside the radius: settling moves things
+    outside = sorted((d, n) for n, d in distance.items() if d > near and _on_table(proposal, n))
+    need = int(round(threshold)) - sum(d <= near for d in distance.values())
     if need < 1 or len(outside) < need:
         return None
     out, names = proposal, []
@@ -73,6 +74,10 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
     names += [a.name for a, b in zip(apart.objects, out.objects, strict=True) if a != b]
     return apart, tuple(names)
+
+
+def _on_table(proposal: SceneProposal, name: str) -> bool:
+    return next(o for o in proposal.objects if o.name == name).support == "table"
 
 
 def occluded(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -116,8 +121,8 @@ def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
         for light in lighting.lights
     )
     ambient = tuple(round(min(a * factor, 1.0), 6) for a in lighting.ambient)
-    lit = lighting.model_copy(update={"lights": lights, "ambient": ambient})
-    return proposal.model_copy(update={"lighting": lit})
+    scaled = lighting.model_copy(update={"lights": lights, "ambient": ambient})
+    return proposal.model_copy(update={"lighting": scaled})
 
 
 def edge_margin(catalog: Catalog, obj) -> float:
@@ -158,6 +163,21 @@ def _resting(proposal: SceneProposal, catalog: Catalog, pose: int | None, suppor
     return proposal.model_copy(update={"objects": objects}), (target.name,)
 
 
+TOPPLED_DEG = 45.0  # the predicate's default (toppled_angle)
+
+
+def _tilt(asset, pose: int) -> float:
+    """The angle (rad) between world-up seen in the body frame in resting pose ``pose`` and in the
+    nearest upright resting pose (pi when there is none): the toppled predicate's measure."""
+    from scenegen.core.rotations import quat_to_matrix
+
+    up = quat_to_matrix(asset.resting_poses[pose].quat)[2, :]
+    uprights = [quat_to_matrix(p.quat)[2, :] for p in asset.resting_poses if p.upright]
+    if not uprights:
+        return float(np.pi)
+    return float(min(np.arccos(np.clip(np.dot(up, u), -1.0, 1.0)) for u in uprights))
+
+
 def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """The target laid in its likeliest resting pose that is not upright (required), or that is
     (forbidden), where it stands; None when it has none."""
@@ -165,6 +185,8 @@ def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     asset = catalog.get(target.asset)
     want_upright = kind != "required"
     poses = [i for i, p in enumerate(asset.resting_poses) if p.upright == want_upright]
+    if not want_upright:  # tilted well past the predicate's 45 degrees from every upright pose
+        poses = [i for i in poses if _tilt(asset, i) > np.radians(TOPPLED_DEG + 10)]
     if not poses or asset.orientation_free:
         return None
     pose = max(poses, key=lambda i: (asset.resting_poses[i].probability, -i))
@@ -175,8 +197,8 @@ def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, 
 def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """The target set on top of the nearest other object on its ground (the table, or the floor when
     it lies there) that can carry it (a stack base with nothing on it, in reach), at its top's centre
-    (required); or, stacked against the request, set
-    on the table beside what carries it (forbidden)."""
+    (required); or, stacked against the request, set on the table beside what carries it
+    (forbidden)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     here = np.asarray(target.position[:2])
     if kind == "required":

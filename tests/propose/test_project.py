@@ -5,6 +5,8 @@ checks' and predicates' own."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from scenegen.check.geometry import CheckSettings, run_checks
@@ -76,6 +78,7 @@ def test_the_constants_agree_with_the_checks_and_predicates():
     assert tp.NEAR_EDGE == TagSettings().near_edge_distance
     assert tp.LOW_LIGHT == TagSettings().low_light_irradiance
     assert tp.OVERHANG_COVER == TagSettings().overhang_cover
+    assert tp.TOPPLED_DEG == pytest.approx(math.degrees(TagSettings().toppled_angle))
     assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
 
 
