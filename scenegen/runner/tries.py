@@ -45,11 +45,15 @@ def labelled_tries(
     else:
         per_index = ([o] for o in ordered_outcomes(proposals, config, workers, export=False, backend=backend))
     accepted = tried = 0
-    for outcomes in per_index:
-        for outcome in outcomes:
-            yield made.pop((outcome.proposal_index, outcome.attempt)), outcome
-            tried += 1
-            accepted += outcome.record is not None
-            if accepted >= config.n or (config.max_tries is not None and tried >= config.max_tries):
-                return
-        made = {k: v for k, v in made.items() if k[0] > outcomes[-1].proposal_index}
+    try:
+        for outcomes in per_index:
+            for outcome in outcomes:
+                yield made.pop((outcome.proposal_index, outcome.attempt)), outcome
+                tried += 1
+                accepted += outcome.record is not None
+                if accepted >= config.n or (config.max_tries is not None and tried >= config.max_tries):
+                    return
+            for key in [k for k in made if k[0] <= outcomes[-1].proposal_index]:
+                del made[key]  # tries an accepted sibling made moot
+    finally:
+        per_index.close()  # stops the workers now, not at garbage collection
