@@ -41,15 +41,15 @@ def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float
     return None
 
 
-CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06
+CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06  # CLUTTER_AIM: the closest a neighbour's centre is set
 CLUTTER_COUNT, NEAR_EDGE = 3, 0.03  # the predicates' defaults as well (clutter_count, near_edge_distance)
 
 
 def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """A required clutter: as many of the nearest other objects on the table (with their stacks) as
-    the scene as placed lacks within the radius less 2 cm moved toward the target to CLUTTER_AIM
-    inside the radius, then pushed apart where they overlap (``separate``, the target held). A
-    forbidden clutter: None."""
+    the scene as placed lacks within the radius less 2 cm (those small enough to fit beside the
+    target there) moved toward the target until just clear of it, then pushed apart where they
+    overlap (``separate``, the target held). A forbidden clutter: None."""
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
@@ -60,15 +60,26 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
         if o.name != target.name
     }
     near = CLUTTER_RADIUS - 0.02  # counted as placed, 2 cm inside the radius: settling moves things
-    outside = sorted((d, n) for n, d in distance.items() if d > near and _on_table(proposal, n))
+
+    def radius(o) -> float:
+        return layout.footprint_radius(catalog.get(o.asset), o.resting_pose) * o.scale
+
+    objects = {o.name: o for o in proposal.objects}
+    room = near - SLACK - radius(target)  # what a neighbour's footprint may take, beside the target's
+    outside = sorted(
+        (d, n)
+        for n, d in distance.items()
+        if d > near and _on_table(proposal, n) and radius(objects[n]) + SLACK <= room
+    )
     need = int(round(threshold)) - sum(d <= near for d in distance.values())
     if need < 1 or len(outside) < need:
         return None
     out, names = proposal, []
-    aim = CLUTTER_RADIUS - CLUTTER_AIM
     for d, name in outside[:need]:
         obj = next(o for o in out.objects if o.name == name)
         towards = centre - np.asarray(obj.position[:2])
+        # just clear of the target, and well inside the radius
+        aim = min(max(radius(target) + radius(obj) + SLACK, CLUTTER_AIM), CLUTTER_RADIUS - CLUTTER_AIM / 2)
         out, shifted = moved(out, name, (d - aim) * towards / d)
         names += shifted
     apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
