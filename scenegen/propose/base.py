@@ -56,6 +56,12 @@ def impossible_request(condition: Condition, catalog) -> str | None:
             f"required tag toppled: no {condition.target} asset has a non-upright resting pose, so no "
             "scene can hold it; request another target"
         )
+    if {"near_edge", "on_floor"} <= set(condition.required()):
+        return (
+            "required tags near_edge and on_floor: near_edge holds only for a target resting on the "
+            "table top (its lowest point within 1 cm of it), on_floor only for one 0.3 m or more below "
+            "it, so no scene can hold both; ask for one of them"
+        )
     return None
 
 

@@ -20,21 +20,27 @@ SLACK_LIGHT = 0.1  # share of the low_light threshold a projected irradiance lie
 
 def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """The target, with what holds it up (the furniture piece or the stack under it), toward the
-    nearest table edge it stays in reach at by the margin missing (required), or away from its
-    nearest edge by the excess (forbidden)."""
+    nearest table edge it stays in reach at until its footprint as placed lies ``SLACK`` inside the
+    threshold (required), or away from its nearest edge until ``SLACK`` outside it (forbidden); the
+    margins are measured on the placement (``value``, the settled one, is not needed)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     base = root(proposal, target.name)
     if base is None:
         return None
-    x, y = target.position[:2]
+    pts = _placed_vertices(catalog, target)
     hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
-    gaps = {(1.0, 0.0): hx - x, (-1.0, 0.0): hx + x, (0.0, 1.0): hy - y, (0.0, -1.0): hy + y}
+    gaps = {  # each edge's distance to the footprint as placed, the predicate's measure per edge
+        (1.0, 0.0): hx - pts[:, 0].max(),
+        (-1.0, 0.0): hx + pts[:, 0].min(),
+        (0.0, 1.0): hy - pts[:, 1].max(),
+        (0.0, -1.0): hy + pts[:, 1].min(),
+    }
     if kind == "forbidden":
-        direction = np.asarray(min(gaps, key=gaps.get))
-        return moved(proposal, base, -(threshold - value + SLACK) * direction)
-    by = value - threshold + SLACK
+        direction = min(gaps, key=gaps.get)
+        return moved(proposal, base, -(threshold - gaps[direction] + SLACK) * np.asarray(direction))
     shoulder = np.asarray(layout.SHOULDER)
     for direction in sorted(gaps, key=gaps.get):  # the nearest edge whose side keeps it in reach
+        by = gaps[direction] - threshold + SLACK
         there = np.asarray(target.position) + by * np.array([*direction, 0.0])
         if float(np.linalg.norm(there - shoulder)) <= layout.REACH[1] - SLACK:
             return moved(proposal, base, by * np.asarray(direction))
