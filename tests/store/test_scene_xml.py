@@ -11,7 +11,7 @@ import pytest
 from scenegen.assets.catalog import load_catalog
 from scenegen.propose.base import PROPOSERS
 from scenegen.runner.config import load_pipeline
-from scenegen.runner.pipeline import _proposals
+from scenegen.runner.pipeline import proposal_stream
 from scenegen.settle.physics import free_bodies
 from scenegen.sim import world
 from scenegen.store.batch import scene_xml
@@ -24,7 +24,7 @@ def test_stand_in_meshes_write_the_same_scene_xml(recipe: str):
     catalog = load_catalog()
     config = load_pipeline(PIPELINES / recipe, {"seed": 3})
     proposer = PROPOSERS[config.proposer.kind](config.proposer, catalog)
-    for proposal in islice(_proposals(proposer, config, 0), 5):
+    for proposal in islice(proposal_stream(proposer, config, 0), 5):
         spec = world.build_world(
             catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras
         )
