@@ -137,6 +137,8 @@ def recipe(
     raw["condition"]["tags"] = dict.fromkeys(tags, "required")
     raw["proposer"]["repairs"] = repairs
     raw["proposer"]["project"] = project
+    if project:
+        raw["proposer"]["denoise"] = False  # every repair a projection
     raw.update(top)
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(raw))
@@ -156,7 +158,7 @@ def files(batch: Path) -> dict[str, bytes]:
     "project, tags, method",
     [
         (False, ("toppled", "occluded", "low_light"), "denoise"),
-        (True, ("toppled", "low_light", "clutter"), "project"),  # a missed low_light or clutter moved
+        (True, ("near_edge", "occluded"), "project"),  # projections only
     ],
 )
 def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(
