@@ -246,3 +246,25 @@ def footprint_radius(asset: Asset, pose: int) -> float:
 def footprint_half_extents(asset: Asset, pose: int) -> np.ndarray:
     """Half extents (m, x and y) of the asset's footprint box in resting pose ``pose`` at yaw 0."""
     return np.abs(_footprint_corners(asset, pose)).max(0)
+
+
+def edge_margin(points: np.ndarray) -> float:
+    """The smallest distance (m) from any of ``points`` (N, 3) to a table edge in the plane; negative
+    past it. The near_edge predicate's value, and what its projection measures before a check."""
+    hx, hy = TABLE_SIZE[0] / 2, TABLE_SIZE[1] / 2
+    return float(min((hx - np.abs(points[:, 0])).min(), (hy - np.abs(points[:, 1])).min()))
+
+
+def overhang_cover(points: np.ndarray, furniture) -> float:
+    """The share of ``points`` (N, 3) that have a furniture box wholly above their highest point: the
+    under_overhang predicate's value, and what its projection measures before a check."""
+    top = points[:, 2].max()
+    boxes = [box for piece in furniture for box in furniture_boxes(piece)]
+    covered = 0
+    for p in points:
+        for centre, rot, half in boxes:
+            local = rot.T @ (p - centre)
+            if np.all(np.abs(local[:2]) <= half[:2]) and centre[2] - half[2] > top:
+                covered += 1
+                break
+    return covered / len(points)

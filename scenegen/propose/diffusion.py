@@ -47,6 +47,20 @@ def require_spread(config: dict, settings: DiffusionSettings) -> None:
         )
 
 
+def _pinned(key: str, name: str, folder: Path, sha256: str | None) -> None:
+    """Raise ValueError when ``folder``'s model.safetensors is not the one ``key`` pins (None: any)."""
+    from scenegen.core.files import sha256_file
+
+    if sha256 is None:
+        return
+    found = sha256_file(folder / "model.safetensors")
+    if found != sha256:
+        raise ValueError(
+            f"{key}: {name}/model.safetensors has sha256 {found[:12]}..., "
+            f"the recipe pins {sha256[:12]}...; restore that file or unpin it"
+        )
+
+
 class DiffusionSettings(AssetChoice):
     """Settings of the diffusion proposer (``proposer.kind: diffusion``). ``assets``
     (:class:`~scenegen.propose.base.AssetChoice`): only these are placed; an object the model decodes
@@ -149,7 +163,7 @@ class DiffusionSettings(AssetChoice):
     def _fits_checkpoint(self):
         """The checkpoint has what the settings ask of it: the spread for ``draw_spread``, the pinned
         weights for ``checkpoint_sha256``."""
-        from scenegen.core.files import read_checkpoint_config, sha256_file
+        from scenegen.core.files import read_checkpoint_config
 
         if self.draw_spread:
             require_spread(read_checkpoint_config(self.checkpoint_dir(), "generator", "train one"), self)
@@ -158,22 +172,10 @@ class DiffusionSettings(AssetChoice):
             from scenegen.diffusion.verifier import load_verifier
 
             load_verifier(self.verifier_dir())  # one line naming the file when it does not load
-            if self.verifier_sha256 is not None:
-                found = sha256_file(self.verifier_dir() / "model.safetensors")
-                if found != self.verifier_sha256:
-                    raise ValueError(
-                        f"verifier_sha256: {self.verifier}/model.safetensors has sha256 {found[:12]}..., "
-                        f"the recipe pins {self.verifier_sha256[:12]}...; restore it or unpin it"
-                    )
+            _pinned("verifier_sha256", self.verifier, self.verifier_dir(), self.verifier_sha256)
         elif self.verifier_weight > 0:
             raise ValueError("verifier_weight: no verifier to weigh; name its folder in `verifier`")
-        if self.checkpoint_sha256 is not None:
-            found = sha256_file(self.checkpoint_dir() / "model.safetensors")
-            if found != self.checkpoint_sha256:
-                raise ValueError(
-                    f"checkpoint_sha256: {self.checkpoint}/model.safetensors has sha256 {found[:12]}..., "
-                    f"the recipe pins {self.checkpoint_sha256[:12]}...; restore that checkpoint or unpin it"
-                )
+        _pinned("checkpoint_sha256", self.checkpoint, self.checkpoint_dir(), self.checkpoint_sha256)
         return self
 
     def checkpoint_dir(self) -> Path:

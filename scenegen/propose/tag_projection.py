@@ -145,9 +145,7 @@ def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
 def edge_margin(catalog: Catalog, obj) -> float:
     """The near_edge predicate's value for ``obj`` as placed: the smallest distance from its convex
     parts' vertices to a table edge (m; negative past it)."""
-    pts = _placed_vertices(catalog, obj)
-    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
-    return float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
+    return layout.edge_margin(_placed_vertices(catalog, obj))
 
 
 def _resting(proposal: SceneProposal, catalog: Catalog, pose: int | None, support: str, xy, surface_z: float):
@@ -357,17 +355,7 @@ def overhang_cover(proposal: SceneProposal, catalog: Catalog) -> float:
     """The under_overhang predicate's value for the target as placed: the share of its convex parts'
     vertices that have a furniture box above its top."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
-    pts = _placed_vertices(catalog, target)
-    top = pts[:, 2].max()
-    boxes = [box for piece in proposal.furniture for box in layout.furniture_boxes(piece)]
-    covered = 0
-    for p in pts:
-        for centre, rot, half in boxes:
-            local = rot.T @ (p - centre)
-            if np.all(np.abs(local[:2]) <= half[:2]) and centre[2] - half[2] > top:
-                covered += 1
-                break
-    return covered / len(pts)
+    return layout.overhang_cover(_placed_vertices(catalog, target), proposal.furniture)
 
 
 def _placed_vertices(catalog: Catalog, obj) -> np.ndarray:

@@ -144,26 +144,16 @@ def _hull_points(ctx: TagContext) -> np.ndarray:
 def near_edge(ctx: TagContext, s: TagSettings) -> TagValue:
     """Smallest distance (m) from the target's footprint to a table edge; negative = overhanging."""
     pts = _hull_points(ctx)
-    hx, hy = layout.TABLE_SIZE[0] / 2, layout.TABLE_SIZE[1] / 2
     on_table = pts[:, 2].min() > layout.TABLE_TOP_Z - 0.01
-    margin = float(min((hx - np.abs(pts[:, 0])).min(), (hy - np.abs(pts[:, 1])).min()))
+    margin = layout.edge_margin(pts)
     return _measured(margin, s.near_edge_distance, "m", lambda v, t: on_table and v <= t)
 
 
 @predicate("under_overhang")
 def under_overhang(ctx: TagContext, s: TagSettings) -> TagValue:
     """Fraction of the target's footprint points that have a furniture box above the target's top."""
-    pts = _hull_points(ctx)
-    top = pts[:, 2].max()
-    boxes = [box for piece in ctx.furniture for box in layout.furniture_boxes(piece)]
-    covered = 0
-    for p in pts:
-        for center, rot, half in boxes:
-            local = rot.T @ (p - center)
-            if np.all(np.abs(local[:2]) <= half[:2]) and center[2] - half[2] > top:
-                covered += 1
-                break
-    return _measured(covered / len(pts), s.overhang_cover, "fraction", operator.ge)
+    cover = layout.overhang_cover(_hull_points(ctx), ctx.furniture)
+    return _measured(cover, s.overhang_cover, "fraction", operator.ge)
 
 
 @predicate("toppled")
