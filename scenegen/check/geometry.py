@@ -56,12 +56,12 @@ def _result(check: str, passed: bool, label: str, value: float, threshold: float
 
 
 def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
-    """Every object's centre lies over the table, or over the floor strip beside it when the floor is
-    its support (value: worst margin to the region's edge, m)."""
+    """Every object's centre lies over the table, or over the floor strip beside it when it (or the
+    stack it rests on) stands on the floor (value: worst margin to the region's edge, m)."""
     table = layout.support_surfaces(())["table"]
     worst, who = math.inf, ""
     for obj in proposal.objects:
-        region = layout.FLOOR if obj.support == "floor" else table
+        region = layout.FLOOR if layout.stack_ground(proposal, obj.name) == "floor" else table
         margin = region.margin(obj.position[:2])
         if margin < worst:
             worst, who = margin, obj.name
@@ -203,9 +203,10 @@ def check_reachability(
     [reach_min, reach_max] around the shoulder (m).
     """
     obj = next(o for o in proposal.objects if o.name == proposal.target)
-    if obj.support == "floor":
-        # A target on the floor is outside a table-top arm's envelope by construction: a recovery case
-        # for another base or robot, so it is recorded as hard, not rejected.
+    if layout.stack_ground(proposal, obj.name) == "floor":
+        # A target on the floor (or on a stack standing there) is outside a table-top arm's envelope by
+        # construction: a recovery case for another base or robot, so it is recorded as hard, not
+        # rejected.
         return CheckResult(
             stage="check", check="reachability", passed=True, detail=f"{obj.name} on the floor"
         )

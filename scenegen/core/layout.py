@@ -268,3 +268,14 @@ def overhang_cover(points: np.ndarray, furniture) -> float:
                 covered += 1
                 break
     return covered / len(points)
+
+
+def stack_ground(proposal, name: str) -> str:
+    """What the stack under object ``name`` of a SceneProposal stands on: "table", "floor" or a
+    furniture piece's name (``name``'s own support when it rests on no object)."""
+    objects = {o.name: o for o in proposal.objects}
+    seen = set()
+    while name in objects and name not in seen:
+        seen.add(name)
+        name = objects[name].support
+    return name

@@ -37,6 +37,25 @@ def into(region: layout.Surface, xy) -> np.ndarray:
     return np.asarray(region.center) + np.array([c * local[0] - s * local[1], s * local[0] + c * local[1]])
 
 
+GROUNDS = {"table": layout.TABLE_TOP_Z, "floor": layout.FLOOR.z}  # the surfaces a stack can stand on
+
+
+def rehomed(proposal: SceneProposal, name: str, ground: str, xy):
+    """``proposal`` with object ``name`` (on the table or the floor) and its stack moved to ``xy`` on
+    ``ground`` (``GROUNDS``): kept inside the floor strip there, lowered or raised by the surfaces'
+    height difference; (proposal, names moved), or None for no move."""
+    obj = next(o for o in proposal.objects if o.name == name)
+    if ground == "floor":
+        xy = into(layout.FLOOR, xy)
+    dxy = np.asarray(xy, float) - obj.position[:2]
+    out = moved(proposal, name, dxy, GROUNDS[ground] - GROUNDS[obj.support])
+    if out is None or obj.support == ground:
+        return out
+    there, names = out
+    objects = tuple(o.model_copy(update={"support": ground}) if o.name == name else o for o in there.objects)
+    return there.model_copy(update={"objects": objects}), names
+
+
 def root(proposal: SceneProposal, name: str) -> str | None:
     """What carries object ``name`` on the table: itself, the furniture piece or the bottom of the
     stack it rests on; None when it rests on the floor."""

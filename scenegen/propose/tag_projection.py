@@ -11,7 +11,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.moves import SLACK, moved, root
+from scenegen.propose.moves import GROUNDS, SLACK, moved, rehomed, root
 from scenegen.propose.separate import separate
 from scenegen.schema.scene import SceneProposal
 
@@ -49,16 +49,19 @@ def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float
 
 CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06  # CLUTTER_AIM: the closest a neighbour's centre is set
 CLUTTER_COUNT, NEAR_EDGE = 3, 0.03  # the predicates' defaults as well (clutter_count, near_edge_distance)
+FLOOR_SIDES = ((1.0, 0.0), (-1.0, 0.0), (0.0, -1.0), (0.0, 1.0))  # where a neighbour comes from on the floor
 
 
 def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """A required clutter: as many of the nearest other objects on the table (with their stacks) as
-    the scene as placed lacks within the radius less 2 cm (those small enough to fit beside the
-    target there) moved toward the target until just clear of it, then pushed apart where they
-    overlap (``separate``, the target held). A forbidden clutter: None."""
+    """A required clutter: as many of the nearest other objects standing on the table or the floor
+    (with their stacks) as the scene as placed lacks within the radius less 2 cm (those small enough
+    to fit beside the target there) moved toward the target until just clear of it, onto the
+    target's ground (on the floor strip, spread along it), then pushed apart where they overlap
+    (``separate``, the target held). A forbidden clutter: None."""
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
+    ground = _ground(proposal, target.name)
     centre = np.asarray(target.position[:2])
     distance = {
         o.name: float(np.hypot(*(np.asarray(o.position[:2]) - centre)))
@@ -75,51 +78,58 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     outside = sorted(
         (d, n)
         for n, d in distance.items()
-        if d > near and _on_table(proposal, n) and radius(objects[n]) + SLACK <= room
+        if d > near and objects[n].support in GROUNDS and radius(objects[n]) + SLACK <= room
     )
     need = int(round(threshold)) - sum(d <= near for d in distance.values())
     if need < 1 or len(outside) < need:
         return None
     out, names = proposal, []
-    for d, name in outside[:need]:
+    for k, (d, name) in enumerate(outside[:need]):
         obj = next(o for o in out.objects if o.name == name)
-        towards = centre - np.asarray(obj.position[:2])
+        towards = (centre - np.asarray(obj.position[:2])) / d
+        if ground == "floor":  # the strip is narrow across: left, right, then behind and before
+            towards = np.asarray(FLOOR_SIDES[k % len(FLOOR_SIDES)])
         # just clear of the target, and well inside the radius
         aim = min(max(radius(target) + radius(obj) + SLACK, CLUTTER_AIM), CLUTTER_RADIUS - CLUTTER_AIM / 2)
-        out, shifted = moved(out, name, (d - aim) * towards / d)
-        names += shifted
+        step = rehomed(out, name, ground, centre - aim * towards)
+        if step is not None:
+            out, names = step[0], names + list(step[1])
     apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
     names += [a.name for a, b in zip(apart.objects, out.objects, strict=True) if a != b]
     return apart, tuple(names)
 
 
-def _on_table(proposal: SceneProposal, name: str) -> bool:
-    return next(o for o in proposal.objects if o.name == name).support == "table"
+def _ground(proposal: SceneProposal, name: str) -> str:
+    """Where object ``name``'s stack stands: "floor", or "table" (on it or on furniture on it)."""
+    return "floor" if layout.stack_ground(proposal, name) == "floor" else "table"
+
+
+def _height(catalog: Catalog, obj) -> float:
+    """How far an object's top stands above the surface it rests on (m)."""
+    asset = catalog.get(obj.asset)
+    pose = obj.resting_pose
+    return (asset.resting_poses[pose].height + layout.pose_top(asset, pose)) * obj.scale
 
 
 def occluded(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """A required occluded: the tallest other object on the table (with its stack) set on the line
-    from the target to the main camera, just clear of the target, where it hides most of it from
-    the camera. A forbidden occluded: None."""
+    """A required occluded: the tallest other object standing on the table or the floor (with its
+    stack) set on the target's ground on the line from the target to the main camera, just clear of
+    the target, where it hides most of it from the camera. A forbidden occluded: None."""
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
-    candidates = [o for o in proposal.objects if o.name != target.name and o.support == "table"]
+    candidates = [o for o in proposal.objects if o.name != target.name and o.support in GROUNDS]
     if not candidates:
         return None
 
-    def height(o) -> float:
-        asset = catalog.get(o.asset)
-        return (asset.resting_poses[o.resting_pose].height + layout.pose_top(asset, o.resting_pose)) * o.scale
-
-    occluder = max(candidates, key=lambda o: (height(o), o.name))
+    occluder = max(candidates, key=lambda o: (_height(catalog, o), o.name))
     towards = np.asarray(proposal.cameras[0].position[:2]) - np.asarray(target.position[:2])
     towards = towards / max(float(np.hypot(*towards)), 1e-9)
     radius = layout.footprint_radius
     gap = radius(catalog.get(target.asset), target.resting_pose) * target.scale
     gap += radius(catalog.get(occluder.asset), occluder.resting_pose) * occluder.scale + SLACK
     place = np.asarray(target.position[:2]) + gap * towards
-    return moved(proposal, occluder.name, place - np.asarray(occluder.position[:2]))
+    return rehomed(proposal, occluder.name, _ground(proposal, target.name), place)
 
 
 def low_light(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -210,10 +220,11 @@ def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, 
 
 
 def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """The target set on top of the nearest other object on its ground (the table, or the floor when
-    it lies there) that can carry it (a stack base with nothing on it, in reach), at its top's centre
-    (required); or, stacked against the request, set on the table beside what carries it
-    (forbidden)."""
+    """The target set on top of the nearest other object that can carry it (a stack base with nothing
+    on it), at its top's centre (required): on the table one in the arm's reach; on the floor (the
+    target lies there) one on the floor or brought down from the table to where the target lies, as
+    the reachability check leaves a floor stack to another robot. Or, stacked against the request,
+    the target set on the table beside what carries it (forbidden)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     here = np.asarray(target.position[:2])
     if kind == "required":
@@ -222,7 +233,7 @@ def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, 
             o
             for o in proposal.objects
             if o.name != target.name
-            and o.support == ground
+            and o.support in ((ground,) if ground == "table" else GROUNDS)
             and layout.is_stack_base(catalog.get(o.asset))
             and not any(p.support == o.name for p in proposal.objects)
         ]
@@ -237,12 +248,16 @@ def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, 
             near = min(np.linalg.norm(centre - shoulder), np.linalg.norm(centre + [0, 0, above] - shoulder))
             return float(near) <= layout.REACH[1] - 3 * SLACK
 
-        bases = [o for o in bases if reachable(o)]
+        bases = [o for o in bases if ground == "floor" or reachable(o)]
         if not bases:
             return None
         base = min(bases, key=lambda o: (float(np.hypot(*(np.asarray(o.position[:2]) - here))), o.name))
+        brought = rehomed(proposal, base.name, "floor", here) if ground == "floor" else None
+        out, names = brought or (proposal, ())
+        base = next(o for o in out.objects if o.name == base.name)
         top = layout.object_top_surface(catalog, base)
-        return _resting(proposal, catalog, None, base.name, top.center, top.z)
+        placed = _resting(out, catalog, None, base.name, top.center, top.z)
+        return None if placed is None else (placed[0], (*names, *placed[1]))
     carrier = next((o for o in proposal.objects if o.name == target.support), None)
     if carrier is None:
         return None

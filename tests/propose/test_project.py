@@ -257,3 +257,50 @@ def test_the_light_bound_is_at_least_what_the_predicate_measures(accepted, confi
     result = process_proposal(accepted, config, config.catalog(), False)
     measured = result.record.tags["low_light"].value
     assert tp.irradiance_bound(accepted, config.catalog()) >= measured - 1e-3
+
+
+@pytest.mark.parametrize("tag", ["clutter", "occluded", "stacked"])
+def test_a_tag_asked_of_a_target_on_the_floor_is_met_on_the_floor(accepted, config, tag):
+    """on_floor with clutter, occluded or stacked: the neighbours, the occluder or the stack base are
+    brought down onto the floor strip beside the target (nothing left floating over it), the
+    workspace and reachability checks take a stack standing on the floor as on the floor, and the
+    real predicates measure both tags on the settled scene."""
+    condition = Condition(task="retrieve", target="mug", tags={"on_floor": "required", tag: "required"})
+    small = [o for o in accepted.objects if o.name != accepted.target and o.support == "table"]
+    small = min(small, key=lambda o: layout.footprint_radius(config.catalog().get(o.asset), o.resting_pose))
+    z = small.position[2] - layout.TABLE_TOP_Z + layout.FLOOR.z
+    bottle = config.catalog().get("bottle").resting_poses[0]  # upright, taller than the mug
+    extra = {  # on the floor's far end: two more of the smallest, so that three fit beside the mug; a
+        # bottle, tall enough to hide the mug from a camera 45 degrees above it
+        "clutter": [
+            small.model_copy(update={"name": f"obj{8 + k}_x", "support": "floor", "position": (-0.3, y, z)})
+            for k, y in enumerate((0.6, 0.76))
+        ],
+        "occluded": [
+            small.model_copy(
+                update={
+                    "name": "obj8_x",
+                    "asset": "bottle",
+                    "support": "floor",
+                    "resting_pose": 0,
+                    "quat": bottle.quat,
+                    "position": (-0.3, 0.76, layout.FLOOR.z + bottle.height),
+                }
+            )
+        ],
+    }.get(tag, [])
+    asked = accepted.model_copy(update={"condition": condition, "objects": (*accepted.objects, *extra)})
+    placed = proj.anticipated(asked, config.catalog())
+    if tag != "clutter":  # what the proposer cannot measure (occluded) or repairs after the check
+        first = process_proposal(placed, config, config.catalog(), False)
+        if first.record is None and first.rejection.label == "condition_unmet":
+            placed = proj.project(placed, first.rejection, config.catalog())[0]
+    target = next(o for o in placed.objects if o.name == placed.target)
+    assert layout.stack_ground(placed, target.name) == "floor"
+    for o in placed.objects:  # each object over the region of the ground its stack stands on
+        region = layout.FLOOR if layout.stack_ground(placed, o.name) == "floor" else None
+        if region is not None:
+            assert region.margin(o.position[:2]) >= 0, o
+    result = process_proposal(placed, config, config.catalog(), False)
+    assert result.record is not None, result.rejection
+    assert result.record.tags["on_floor"].holds and result.record.tags[tag].holds
