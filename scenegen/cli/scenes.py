@@ -138,6 +138,14 @@ def generate(args: argparse.Namespace) -> int:
             f"{cap} or relax the recipe",
             file=sys.stderr,
         )
+        unrealistic = summary.rejections.get("unrealistic", 0)
+        if rejected and unrealistic * 2 >= rejected:
+            print(
+                f"scenegen: {unrealistic} of {rejected} rejections are unrealistic: the scenes asked for lie "
+                "far from every reference layout (e.g. a combination the reference never shows); lower "
+                "the recipe's realism.min_score or leave realism out to get them",
+                file=sys.stderr,
+            )
         return 1
     return 0
 

@@ -290,3 +290,16 @@ def test_the_command_ends_with_mains_code_and_all_its_output(tmp_path: Path):
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert report["ok"] and report["verified"] and result.stdout.endswith("}\n")
+
+
+def test_a_batch_short_for_its_realism_filter_says_so(tmp_path: Path, capsys):
+    """Every scene settled and tagged, then thrown out by a realism filter no layout passes: the
+    warning names the filter and the keys that relax it, besides the cap."""
+    recipe = yaml.safe_load((REPO_ROOT / "pipelines" / "procedural.yaml").read_text())
+    recipe.update({"n": 1, "render": False, "realism": {"min_score": 1.0}})
+    pipeline = tmp_path / "strict.yaml"
+    pipeline.write_text(yaml.safe_dump(recipe))
+    code = main(["generate", str(pipeline), "--max-tries", "6", "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "try cap (6)" in err and "4 of 6 rejections are unrealistic" in err and "realism.min_score" in err
