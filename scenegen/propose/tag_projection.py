@@ -333,12 +333,14 @@ def before_check(proposal: SceneProposal, tag: str, catalog: Catalog) -> tuple[f
     """(value, threshold, holds) of ``tag``'s predicate as the proposer can measure it on the scene as
     placed, before settling; None for a tag it cannot (occluded). The discrete tags read the
     placement: toppled a resting pose that is not upright, stacked a support that is an object,
-    on_floor the floor; low_light uses :func:`irradiance_bound` and holds only when the bound does."""
+    on_floor a stack standing on the floor; low_light uses :func:`irradiance_bound` and holds only
+    when the bound does."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     objects = {o.name for o in proposal.objects}
     asset = catalog.get(target.asset)
+    floor = layout.stack_ground(proposal, target.name) == "floor"
     if tag == "near_edge":
-        if target.support == "floor":
+        if floor:
             return None
         value = edge_margin(catalog, target)
         return value, NEAR_EDGE, value <= NEAR_EDGE - SLACK
@@ -359,7 +361,7 @@ def before_check(proposal: SceneProposal, tag: str, catalog: Catalog) -> tuple[f
     if tag == "stacked":
         return float(target.support in objects), 0.5, target.support in objects
     if tag == "on_floor":
-        return float(target.support == "floor"), 0.5, target.support == "floor"
+        return float(floor), 0.5, floor
     if tag == "under_overhang":
         value = overhang_cover(proposal, catalog)
         return value, OVERHANG_COVER, value >= OVERHANG_COVER
