@@ -54,10 +54,10 @@ FLOOR_SIDES = ((1.0, 0.0), (-1.0, 0.0), (0.0, -1.0), (0.0, 1.0))  # where a neig
 
 def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """A required clutter: as many of the nearest other objects standing on the table or the floor
-    (with their stacks) as the scene as placed lacks within the radius less 2 cm (those small enough
-    to fit beside the target there) moved toward the target until just clear of it, onto the
-    target's ground (on the floor strip, spread along it), then pushed apart where they overlap
-    (``separate``, the target held). A forbidden clutter: None."""
+    (with their stacks) as the scene as placed lacks within the radius less 2 cm moved toward the
+    target until just clear of its footprint as placed, those that fit there well inside the radius,
+    onto the target's ground (on the floor strip from its sides, the target's narrow ones first),
+    then pushed apart where they overlap (``separate``, the target held). A forbidden clutter: None."""
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
@@ -74,26 +74,33 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
         return layout.footprint_radius(catalog.get(o.asset), o.resting_pose) * o.scale
 
     objects = {o.name: o for o in proposal.objects}
-    room = near - SLACK - radius(target)  # what a neighbour's footprint may take, beside the target's
-    outside = sorted(
-        (d, n)
-        for n, d in distance.items()
-        if d > near and objects[n].support in GROUNDS and radius(objects[n]) + SLACK <= room
-    )
+    around = _placed_vertices(catalog, target)[:, :2] - centre  # the target's footprint as placed
+
+    def aim(o, side) -> float:  # a neighbour's centre on ``side`` of the target, just clear of it
+        return max(float((around @ side).max()) + radius(o) + SLACK, CLUTTER_AIM)
+
+    # on the floor strip: the target's narrow sides first
+    sides = sorted(FLOOR_SIDES, key=lambda side: float((around @ np.asarray(side)).max()))
     need = int(round(threshold)) - sum(d <= near for d in distance.values())
-    if need < 1 or len(outside) < need:
+    if need < 1:
         return None
-    out, names = proposal, []
-    for k, (d, name) in enumerate(outside[:need]):
+    out, names, brought = proposal, [], 0
+    for d, name in sorted((d, n) for n, d in distance.items() if d > near and objects[n].support in GROUNDS):
         obj = next(o for o in out.objects if o.name == name)
-        towards = (centre - np.asarray(obj.position[:2])) / d
-        if ground == "floor":  # the strip is narrow across: left, right, then behind and before
-            towards = np.asarray(FLOOR_SIDES[k % len(FLOOR_SIDES)])
-        # just clear of the target, and well inside the radius
-        aim = min(max(radius(target) + radius(obj) + SLACK, CLUTTER_AIM), CLUTTER_RADIUS - CLUTTER_AIM / 2)
-        step = rehomed(out, name, ground, centre - aim * towards)
+        side = (np.asarray(obj.position[:2]) - centre) / max(d, 1e-9)
+        if ground == "floor":
+            side = np.asarray(sides[brought % len(sides)])
+        there = aim(obj, side)
+        if there > CLUTTER_RADIUS - CLUTTER_AIM / 2:  # it would not fit well inside the radius there
+            continue
+        step = rehomed(out, name, ground, centre + there * side)
         if step is not None:
             out, names = step[0], names + list(step[1])
+        brought += 1
+        if brought == need:
+            break
+    if brought < need:
+        return None
     apart = separate(out, catalog, max_shift=CLUTTER_AIM / 2, spacing=True, fixed=frozenset({target.name}))
     names += [a.name for a, b in zip(apart.objects, out.objects, strict=True) if a != b]
     return apart, tuple(names)
