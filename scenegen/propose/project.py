@@ -91,7 +91,7 @@ def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, ma
         inward = float(np.linalg.norm(np.asarray(obj.position) - shoulder)) > sum(layout.REACH) / 2
         out = np.asarray(obj.position[:2]) - shoulder[:2]
         step = (abs(rejection.value or 0.0) + SLACK) * out / max(float(np.hypot(*out)), 1e-9)
-        return moved(proposal, base, -step if inward else step)
+        return tp.moved_under(proposal, base, -step if inward else step, tp.covering(proposal, catalog, base))
     if label == "condition_unmet":
         return _tags(proposal, rejection, catalog)
     return None

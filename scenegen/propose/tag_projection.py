@@ -21,8 +21,9 @@ SLACK_LIGHT = 0.1  # share of the low_light threshold a projected irradiance lie
 def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
     """The target, with what holds it up (the furniture piece or the stack under it), toward the
     nearest table edge it stays in reach at until its footprint as placed lies ``SLACK`` inside the
-    threshold (required), or away from its nearest edge until ``SLACK`` outside it (forbidden); the
-    margins are measured on the placement (``value``, the settled one, is not needed)."""
+    threshold (required; keeping a required under_overhang it holds, below), or away from its
+    nearest edge until ``SLACK`` outside it (forbidden); the margins are measured on the placement
+    (``value``, the settled one, is not needed)."""
     target = next(o for o in proposal.objects if o.name == proposal.target)
     base = root(proposal, target.name)
     if base is None:
@@ -39,12 +40,60 @@ def near_edge(proposal: SceneProposal, kind: str, value: float, threshold: float
         direction = min(gaps, key=gaps.get)
         return moved(proposal, base, -(threshold - gaps[direction] + SLACK) * np.asarray(direction))
     shoulder = np.asarray(layout.SHOULDER)
-    for direction in sorted(gaps, key=gaps.get):  # the nearest edge whose side keeps it in reach
+    # a required under_overhang the target holds is kept: the nearest edge it can reach while under
+    # its piece, alone or with the piece (which stays on the table, off the arm's side); else, or
+    # without one, the nearest edge it can reach
+    cover = covering(proposal, catalog, base)
+    first = None
+    for direction in sorted(gaps, key=gaps.get):
         by = gaps[direction] - threshold + SLACK
-        there = np.asarray(target.position) + by * np.array([*direction, 0.0])
-        if float(np.linalg.norm(there - shoulder)) <= layout.REACH[1] - SLACK:
-            return moved(proposal, base, by * np.asarray(direction))
+        shift = by * np.asarray(direction)
+        there = np.asarray(target.position) + [*shift, 0.0]
+        if float(np.linalg.norm(there - shoulder)) > layout.REACH[1] - SLACK:
+            continue
+        alone = moved(proposal, base, shift)
+        if cover is None or alone is None or covering(alone[0], catalog, base) is not None:
+            return alone
+        first = first or alone
+        axis = int(direction[1] != 0)
+        if _furthest(cover, direction) + by <= (hx, hy)[axis] and float(np.dot(direction, shoulder[:2])) <= 0:
+            return moved_under(proposal, base, shift, cover)
+    return first
+
+
+def moved_under(proposal: SceneProposal, base: str, dxy, cover=None):
+    """``moved`` of ``base`` (what carries the target) by ``dxy``, with ``cover`` (the furniture piece
+    the target lies under, :func:`covering`; None: none) moved alike, so that it stays under it."""
+    out = moved(proposal, base, dxy)
+    if out is None or cover is None:
+        return out
+    shifted = moved(out[0], cover.name, dxy)
+    return out if shifted is None else (shifted[0], (*out[1], *shifted[1]))
+
+
+def covering(proposal: SceneProposal, catalog: Catalog, base: str):
+    """The furniture piece the target lies under as placed, as the under_overhang predicate counts
+    it, when the request requires under_overhang and ``base`` (what carries the target) is not
+    furniture itself; or None."""
+    required = proposal.condition.tags.get("under_overhang") == "required"
+    if not required or base in {p.name for p in proposal.furniture}:
+        return None
+    points = _placed_vertices(catalog, next(o for o in proposal.objects if o.name == proposal.target))
+    for piece in proposal.furniture:
+        if layout.overhang_cover(points, [piece]) >= OVERHANG_COVER:
+            return piece
     return None
+
+
+def _furthest(piece, direction) -> float:
+    """How far the piece's boxes reach along ``direction`` (a table axis, signed), in the plane."""
+    axis = int(direction[1] != 0)
+    sign = float(direction[axis])
+    reach = -np.inf
+    for centre, rot, half in layout.furniture_boxes(piece):
+        corners = np.array([[sx, sy, 0.0] for sx in (-1, 1) for sy in (-1, 1)]) * half
+        reach = max(reach, float((sign * (corners @ rot.T + centre)[:, axis]).max()))
+    return reach
 
 
 CLUTTER_RADIUS, CLUTTER_AIM = 0.2, 0.06  # CLUTTER_AIM: the closest a neighbour's centre is set

@@ -304,3 +304,26 @@ def test_a_tag_asked_of_a_target_on_the_floor_is_met_on_the_floor(accepted, conf
     result = process_proposal(placed, config, config.catalog(), False)
     assert result.record is not None, result.rejection
     assert result.record.tags["on_floor"].holds and result.record.tags[tag].holds
+
+
+@pytest.mark.parametrize(("shelf_y", "mug_y", "along"), [(0.3, 0.3, False), (0.2, 0.25, True)])
+def test_a_near_edge_projection_keeps_a_required_under_overhang(accepted, config, shelf_y, mug_y, along):
+    """A mug under the shelf (turned to open toward the +y edge) asked near_edge and under_overhang:
+    moved alone toward the edge while it stays under the board, or with the shelf when alone it
+    would leave it; the real predicates then measure both on the settled scene."""
+    shelf = next(p for p in accepted.furniture if p.kind == "shelf")
+    shelf = shelf.model_copy(update={"position": (0.0, shelf_y, 0.0), "yaw": math.pi / 2})
+    mug = next(o for o in accepted.objects if o.name == accepted.target)
+    mug = mug.model_copy(update={"position": (0.0, mug_y, mug.position[2])})
+    condition = Condition(
+        task="retrieve", target="mug", tags={"near_edge": "required", "under_overhang": "required"}
+    )
+    asked = accepted.model_copy(update={"objects": (mug,), "furniture": (shelf,), "condition": condition})
+    assert tp.covering(asked, config.catalog(), mug.name) == shelf
+    placed, _ = tp.near_edge(asked, "required", 0.2, tp.NEAR_EDGE, config.catalog())
+    moved_mug = placed.objects[0].position[1] - mug_y
+    moved_shelf = placed.furniture[0].position[1] - shelf_y
+    assert moved_mug > 0 and moved_shelf == pytest.approx(moved_mug if along else 0.0, abs=1e-6)
+    result = process_proposal(placed, config, config.catalog(), False)
+    assert result.record is not None, result.rejection
+    assert result.record.tags["near_edge"].holds and result.record.tags["under_overhang"].holds
