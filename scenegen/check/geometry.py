@@ -58,11 +58,9 @@ def _result(check: str, passed: bool, label: str, value: float, threshold: float
 def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
     """Every object's centre lies over the table, or over the floor strip beside it when it (or the
     stack it rests on) stands on the floor (value: worst margin to the region's edge, m)."""
-    table = layout.support_surfaces(())["table"]
     worst, who = math.inf, ""
     for obj in proposal.objects:
-        region = layout.FLOOR if layout.stack_ground(proposal, obj.name) == "floor" else table
-        margin = region.margin(obj.position[:2])
+        margin = layout.workspace_region(proposal, obj.name).margin(obj.position[:2])
         if margin < worst:
             worst, who = margin, obj.name
     return _result("workspace", worst >= 0.0, "out_of_workspace", worst, 0.0, who)

@@ -279,3 +279,9 @@ def stack_ground(proposal, name: str) -> str:
         seen.add(name)
         name = objects[name].support
     return name
+
+
+def workspace_region(proposal, name: str) -> Surface:
+    """The region object ``name``'s centre must lie over: the floor strip when its stack stands on the
+    floor, else the table (the workspace check's, and where a projection puts it back)."""
+    return FLOOR if stack_ground(proposal, name) == "floor" else support_surfaces(())["table"]

@@ -22,7 +22,7 @@ def in_workspace(proposal: SceneProposal, names: tuple[str, ...]):
         obj = next((o for o in proposal.objects if o.name == name), None)
         if obj is None or obj.support not in ("table", "floor"):
             continue
-        region = layout.FLOOR if obj.support == "floor" else layout.support_surfaces(())["table"]
+        region = layout.workspace_region(proposal, name)
         if region.margin(obj.position[:2]) < 0:
             proposal = moved(proposal, name, into(region, obj.position[:2]) - obj.position[:2])[0]
     return proposal, names

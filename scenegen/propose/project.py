@@ -69,8 +69,7 @@ def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, ma
     named = rejection.detail.split(":")[0].split(" by ")[0].strip()
     if label == "out_of_workspace" and named in objects:
         obj = objects[named]
-        floor = layout.stack_ground(proposal, named) == "floor"
-        region = layout.FLOOR if floor else layout.support_surfaces(())["table"]
+        region = layout.workspace_region(proposal, named)
         return moved(proposal, named, into(region, obj.position[:2]) - obj.position[:2])
     if label == "unsupported" and named in objects:
         return _supported(proposal, named, catalog)
