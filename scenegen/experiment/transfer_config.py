@@ -197,7 +197,8 @@ class TransferConfigV2(TransferConfig):
     panel's ceiling (``oracle_seeds``: only the runs of these seeds, None: all). ``arms``: the arms
     run (the pilot: A+ and C); ``arm_seeds``: fewer training seeds for the arms named (the cut
     order's "A, B and E to 3 seeds"); ``perturbations``: the shifts evaluated (None: none);
-    ``plan_grid``: the resolution evaluated plans are executed at (None: as planned). Version
+    ``plan_grid``: the resolution evaluated plans are executed at (None: as planned); ``parts``: where
+    trained heads and choosers are kept (storage, like ``cache``: not part of what is run). Version
     1's keys that version 2 does not use (``V1_ONLY``) are refused unless at their version 2
     default, so none is silently ignored."""
 
@@ -219,6 +220,12 @@ class TransferConfigV2(TransferConfig):
     state_ablation: tuple[str, ...] = ()
     perturbation: Perturbation | None = None
     manifest: Path | None = None
+    # where trained heads and choosers are kept (None: the cache): a folder committed beside the
+    # artifact lets a run resumed on a fresh machine continue on the same parts without retraining
+    parts: Path | None = None
+
+    def parts_folder(self) -> Path:
+        return Path(self.parts or self.cache)
 
     @field_validator("arms")
     @classmethod

@@ -133,13 +133,13 @@ def train_heads(config: TransferConfigV2, runs: list[dict], data: dict, out: Pat
     from scenegen.perception.retrieval.frames import render_missing
     from scenegen.runner.executors import ordered_map
 
-    cache = Path(config.cache)
-    pending = [r for r in runs if not (cache / "heads" / r["head"] / "config.json").is_file()]
+    cache, parts = Path(config.cache), config.parts_folder()
+    pending = [r for r in runs if not (parts / "heads" / r["head"] / "config.json").is_file()]
     if not pending:
         return
     scenes = list({scene_sha256(s): s for r in pending for s in data[r["arm"]][0]}.values())
     render_missing(scenes, cache / "frames", config.workers, progress)
-    jobs = [(r, config, *data[r["arm"]], cache / "heads" / r["head"], cache / "frames") for r in pending]
+    jobs = [(r, config, *data[r["arm"]], parts / "heads" / r["head"], cache / "frames") for r in pending]
     walls = ordered_map(_head_job, jobs, config.workers)
     for run, wall in zip(
         pending, tqdm(walls, total=len(jobs), desc="heads", disable=not progress), strict=True
@@ -166,7 +166,9 @@ def panels_v2(config: TransferConfigV2) -> dict[str, list[EnvScene]]:
 def resolved_config(config: TransferConfigV2) -> str:
     """The configuration as its out folder's config.yaml holds it: what is run, not the workers or
     the manifest its outcome is also written to (naming one later does not make another run)."""
-    return yaml.safe_dump(config.model_dump(mode="json", exclude={"workers", "manifest"}), sort_keys=False)
+    return yaml.safe_dump(
+        config.model_dump(mode="json", exclude={"workers", "manifest", "parts"}), sort_keys=False
+    )
 
 
 def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after: str | None = None) -> dict:
@@ -212,8 +214,8 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     trained: dict[str, tuple] = {}
     with Workers(config.workers) as workers:
         for run in tqdm(all_runs, desc="choosers", disable=not progress):
-            head = cache / "heads" / run["head"]
-            folder = cache / "policies" / run["parts"]
+            head = config.parts_folder() / "heads" / run["head"]
+            folder = config.parts_folder() / "policies" / run["parts"]
             with _spent(out, run, "chooser", folder):
                 train_run(run, config, scenes, labels, observations, workers, folder, head, data[run["arm"]])
             trained[run["name"]] = (PrimitivePolicy.load(folder), head)

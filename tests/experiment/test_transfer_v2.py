@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 import pytest
+import yaml
 
 from scenegen.core.files import load_rows
 from scenegen.env.mixture import scene_weights
@@ -169,6 +170,24 @@ def test_heads_trained_two_at_a_time_are_the_bytes_of_heads_trained_alone(tiny_r
     assert len(heads) == len(metrics["runs"]) and all(c["parallel"] == 2 for c in heads)
     per_run = measured([two.out])["training"]["head"]["wall_s"]  # a head's share of the run's wall
     assert per_run == pytest.approx(sum(c["wall_s"] / 2 for c in heads) / len(heads), abs=0.1)
+
+
+def test_parts_kept_beside_the_artifact_let_a_fresh_machine_resume_without_training(tiny_run):
+    """``parts``: trained heads and choosers kept in their own (committed) folder; a run on a fresh
+    machine (an empty cache) finds them and trains nothing, and the folder is storage, not part of
+    the configuration its out folder records."""
+    import shutil
+
+    config, metrics, base = tiny_run
+    parts = base / "committed_parts"
+    for kind in ("heads", "policies"):
+        shutil.copytree(Path(config.cache) / kind, parts / kind)
+    fresh = tiny_config(base / "fresh", base / "shared").model_copy(update={"parts": parts})
+    assert run_transfer_v2(fresh, progress=False, stop_after="training") == {}
+    log = Path(fresh.out) / "costs.jsonl"  # a row per trained part; none trained, none written
+    assert not log.exists() or "head" not in log.read_text() and "chooser" not in log.read_text()
+    assert not (Path(fresh.cache) / "heads").exists()
+    assert "parts" not in yaml.safe_load((Path(fresh.out) / "config.yaml").read_text())
 
 
 def test_c_is_more_real_data_in_version_2():
