@@ -74,6 +74,16 @@ def runs_v2(config: TransferConfigV2) -> list[dict]:
     ]
 
 
+ENDPOINT_ARMS = ("A+", "C", "D")  # the positive control's and the primary endpoint's: never cut
+
+
+def evaluation_order(runs: list[dict]) -> list[dict]:
+    """The runs of the endpoints' arms first (each arm's seeds in order), then the others: a run
+    stopped across sessions has what the endpoints need before the secondary contrasts. Each (run,
+    panel, condition) is evaluated alone, so the order changes no episode."""
+    return sorted(runs, key=lambda run: run["arm"] not in ENDPOINT_ARMS)
+
+
 def conditions(config: TransferConfigV2, run: dict, panel: str) -> list[tuple[str, Variant]]:
     """What ``run`` is evaluated under on ``panel``: (condition, variant) pairs, a condition being
     the sight (``head``; ``oracle``, the chooser through true masks) and, under a shift, ``@name``."""
@@ -224,7 +234,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         if lap("training"):
             return {}
         paths = PathStore(config.path_store)
-        for number, run in enumerate(all_runs):
+        for number, run in enumerate(evaluation_order(all_runs)):
             _evaluate_run(config, run, *trained[run["name"]], panels, paths, observations, workers, out)
             if stop_after == f"evaluation:{number + 1}":
                 return {}
@@ -315,7 +325,7 @@ def _evaluate_run(config, run, policy, head, panels, store, observations, worker
                 cost,
                 grid=grid,
             )
-            spent = {"run": run["name"], "panel": panel, "condition": condition}
+            spent = {"run": run["name"], "panel": panel, "condition": condition, "cpu": cpu_model()}
             spent |= cost.summary(len(records)) | {"wall_s": round(time.perf_counter() - began, 1)}
             tagged = [  # one policy: the records follow the scenes
                 r | {"panel": panel, "sight": condition, "layout": panel_id(s)}
@@ -335,6 +345,18 @@ def _grid(records: list[dict], runs: list[str], layouts: list[str]):
     if missing:
         raise TransferError(f"no episode of {missing[0][0]} on {missing[0][1]} ({len(missing)} missing)")
     return np.array([[float(index[(run, i)]) for i in layouts] for run in runs])
+
+
+def cpu_model() -> str:
+    """The processor's name (/proc/cpuinfo), recorded with each evaluation's costs: parts trained
+    and episodes simulated on another processor may differ in their last bits (docs/transfer.md)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    return next((x.split(":", 1)[1].strip() for x in lines if x.startswith("model name")), "")
 
 
 def episodes_file(out: Path, panel: str, run: str, condition: str) -> Path:

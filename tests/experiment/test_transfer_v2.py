@@ -190,6 +190,21 @@ def test_parts_kept_beside_the_artifact_let_a_fresh_machine_resume_without_train
     assert "parts" not in yaml.safe_load((Path(fresh.out) / "config.yaml").read_text())
 
 
+def test_the_endpoints_arms_are_evaluated_first_and_each_evaluation_names_its_processor(tiny_run):
+    from scenegen.experiment.transfer_v2 import evaluation_order
+
+    runs = [
+        {"name": f"{arm}_s{seed}", "arm": arm} for arm in ("A", "A+", "B", "C", "D", "E") for seed in (0, 1)
+    ]
+    order = [r["name"] for r in evaluation_order(runs)]
+    assert order[:6] == ["A+_s0", "A+_s1", "C_s0", "C_s1", "D_s0", "D_s1"]
+    assert order[6:] == ["A_s0", "A_s1", "B_s0", "B_s1", "E_s0", "E_s1"]
+    config, _, _ = tiny_run
+    costs = [json.loads(x) for x in (Path(config.out) / "costs.jsonl").read_text().splitlines()]
+    evaluated = [c for c in costs if "panel" in c]
+    assert evaluated and all(c["cpu"] for c in evaluated)
+
+
 def test_c_is_more_real_data_in_version_2():
     """C's extra layouts are drawn with A's per-scene weight (as the curves' rare-rich set), not as a
     second term at alpha: every C scene as likely as every A scene."""
