@@ -74,7 +74,7 @@ def _transfer_base(root: Path) -> dict:
     config["generation"] = {**config["generation"]}
     for key in ("recipe", "diffusion"):
         config["generation"][key] = str(PROJECT_ROOT / config["generation"][key])
-    for key in ("label_store", "path_store", "cache", "out", "manifest", "batches"):
+    for key in ("label_store", "path_store", "cache", "parts", "out", "manifest", "batches"):
         if key in config:  # version 2 names no manifest yet
             config[key] = str(root / key)
     return config
