@@ -27,7 +27,9 @@ llvmpipe threads fixed to 1. Every accepted scene's tags are recomputed from its
 Analytic estimate of (a), for tags too rare to run many times: reference rate of the tag among
 reference layouts with the same target category x pass rate (share of proposals that pass check and
 settle in an unconditioned calibration run of the same recipe and request) / CPU-seconds per
-proposal in that run. Prints a table, saves JSON.
+proposal in that run. Prints a table, saves JSON; each tag's row is also appended to JSON's
+``.rows.jsonl`` as it is measured, and a rerun of the same command measures only the tags missing
+(a long run stopped at a session's end, or on another machine, goes on: a row is one machine's).
 """
 
 from __future__ import annotations
@@ -122,6 +124,91 @@ def mix(rejections: dict, proposals: int) -> str:
     return ", ".join(f"{k} {v / proposals:.0%}" for k, v in rejections.items()) or "-"
 
 
+def run_args(args: argparse.Namespace) -> dict:
+    """What decides a tag's row: the arguments but where the result is saved."""
+    return {
+        k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items() if k not in ("json", "tags")
+    }
+
+
+def resumed_rows(path: Path, args: argparse.Namespace) -> list[dict]:
+    """The rows an earlier run of the same arguments measured (``--json``'s ``.rows.jsonl``); a torn
+    last line (a kill while writing) is measured again."""
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if row.pop("run_args", None) == run_args(args) and row["tag"] in args.tags:
+            rows.append(row)
+    if rows:
+        print(f"resumed {len(rows)} tag(s) from {path}: {', '.join(r['tag'] for r in rows)}", flush=True)
+    return rows
+
+
+def calibrate(args: argparse.Namespace, target: str) -> dict:
+    """The unconditioned run of ``target``: rejection sampling's pass rate and CPU-s per proposal."""
+    c = run(args.recipe, f"retrieve the {target}", "procedural", 10**6, args.calibration, args.seed, None)
+    c["pass_rate"] = round(c["passed_check_and_settle"] / c["proposals"], 4)
+    c["cpu_s_per_proposal"] = round(c["cpu_s"] / c["proposals"], 4)
+    print(
+        f"calibration (retrieve the {target}, no tag): {c['proposals']} proposals, pass rate "
+        f"{c['pass_rate']:.2f}, {c['cpu_s_per_proposal']:.3f} CPU-s per proposal",
+        flush=True,
+    )
+    return c
+
+
+def measure_tag(
+    args, tag: str, target: str, generator: dict, calibration: dict, rates, reference_rows
+) -> dict:
+    """One tag's row: (a), (b) and (c) asked "retrieve the TARGET TAG", (c)'s C2ST against the
+    reference layouts that hold the tag with that target, the steps panel, the analytic (a)."""
+    request = f"retrieve the {target} {tag}"
+    a = run(args.recipe, request, "procedural", args.scenes_a, args.max_proposals, args.seed, tag)
+    b = run(args.recipe, request, "targeted", args.scenes_b, args.max_proposals, args.seed, tag)
+    c_rows: list[dict] = []
+    c = run(args.recipe, request, generator, args.scenes_c, args.max_proposals, args.seed, tag, c_rows)
+    c["pass_rate"] = round(c["passed_check_and_settle"] / max(c["proposals"], 1), 4)
+    same = [r for r in reference_rows if r["target_category"] == target and r[f"tag_{tag}"]]
+    if len(c_rows) >= 10 and len(same) >= 10:
+        test = c2st(feature_matrix(c_rows), feature_matrix(same), seed=args.seed)
+        c["c2st_vs_rejection_sampled"] = {"accuracy": round(test.accuracy, 4), "ci": test.ci, "n": test.n}
+    steps_runs = {}
+    for steps in args.steps_panel:
+        settings = {**generator, "steps": steps}
+        r = run(args.recipe, request, settings, args.scenes_steps, args.max_proposals, args.seed, tag)
+        r["pass_rate"] = round(r["passed_check_and_settle"] / max(r["proposals"], 1), 4)
+        r["adherence"] = round(r["verified"] / max(r["passed_check_and_settle"], 1), 4)
+        steps_runs[str(steps)] = r
+    c["adherence"] = round(c["verified"] / max(c["passed_check_and_settle"], 1), 4)
+    count, total = rates[tag].get(target, (0, 0))
+    analytic = count / total * calibration["pass_rate"] / calibration["cpu_s_per_proposal"] if total else None
+    return {
+        "tag": tag,
+        "target": target,
+        "calibration": calibration,
+        "reference_rate": {"count": count, "layouts": total, "rate": round(count / max(total, 1), 4)},
+        "a_rejection_sampling": a,
+        "a_analytic_yield_per_cpu_s": round(analytic, 5) if analytic is not None else None,
+        "b_targeted": b,
+        "b_over_a": round(b["yield_per_cpu_s"] / a["yield_per_cpu_s"], 1) if a["verified"] else None,
+        "c_diffusion": c,
+        "c_over_a": round(c["yield_per_cpu_s"] / a["yield_per_cpu_s"], 1) if a["verified"] else None,
+        "c_steps": steps_runs,
+    }
+
+
+def break_even(row: dict, training_cpu_s: float) -> int | None:
+    """Training's CPU-s over the CPU-s per scene (c) saves against (a); None where it saves none."""
+    a, c = row["a_rejection_sampling"], row["c_diffusion"]
+    saved = (a["cpu_s_per_scene"] or 0) - (c["cpu_s_per_scene"] or 0)
+    return round(training_cpu_s / saved) if saved > 0 and c["verified"] else None
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recipe", type=Path, default=Path("pipelines/reference.yaml"))
@@ -164,67 +251,27 @@ def main() -> None:
     warm = PROPOSERS["diffusion"](generator_config.proposer, load_catalog())
     warm.propose(generator_config.condition, [0], args.seed)
     training_cpu_s = json.loads((checkpoint / "config.json").read_text())["cpu_seconds"]
-    calibrations: dict[str, dict] = {}
-    rows = []
-    for tag in args.tags:
+    saved_rows = args.json.with_suffix(".rows.jsonl")
+    saved_rows.parent.mkdir(parents=True, exist_ok=True)
+    rows = resumed_rows(saved_rows, args)
+    calibrations: dict[str, dict] = {r["target"]: r["calibration"] for r in rows}
+    for tag in [t for t in args.tags if t not in {r["tag"] for r in rows}]:
         target = best_targets(reference_rows, [tag])[tag] if args.target == "auto" else args.target
         if target not in calibrations:
-            c = run(
-                args.recipe, f"retrieve the {target}", "procedural", 10**6, args.calibration, args.seed, None
-            )
-            c["pass_rate"] = round(c["passed_check_and_settle"] / c["proposals"], 4)
-            c["cpu_s_per_proposal"] = round(c["cpu_s"] / c["proposals"], 4)
-            calibrations[target] = c
-            print(
-                f"calibration (retrieve the {target}, no tag): {c['proposals']} proposals, pass rate "
-                f"{c['pass_rate']:.2f}, {c['cpu_s_per_proposal']:.3f} CPU-s per proposal",
-                flush=True,
-            )
-        calibration = calibrations[target]
-        request = f"retrieve the {target} {tag}"
-        a = run(args.recipe, request, "procedural", args.scenes_a, args.max_proposals, args.seed, tag)
-        b = run(args.recipe, request, "targeted", args.scenes_b, args.max_proposals, args.seed, tag)
-        c_rows: list[dict] = []
-        c = run(args.recipe, request, generator, args.scenes_c, args.max_proposals, args.seed, tag, c_rows)
-        c["pass_rate"] = round(c["passed_check_and_settle"] / max(c["proposals"], 1), 4)
-        same = [r for r in reference_rows if r["target_category"] == target and r[f"tag_{tag}"]]
-        if len(c_rows) >= 10 and len(same) >= 10:
-            test = c2st(feature_matrix(c_rows), feature_matrix(same), seed=args.seed)
-            c["c2st_vs_rejection_sampled"] = {"accuracy": round(test.accuracy, 4), "ci": test.ci, "n": test.n}
-        steps_runs = {}
-        for steps in args.steps_panel:
-            settings = {**generator, "steps": steps}
-            r = run(args.recipe, request, settings, args.scenes_steps, args.max_proposals, args.seed, tag)
-            r["pass_rate"] = round(r["passed_check_and_settle"] / max(r["proposals"], 1), 4)
-            r["adherence"] = round(r["verified"] / max(r["passed_check_and_settle"], 1), 4)
-            steps_runs[str(steps)] = r
-        c["adherence"] = round(c["verified"] / max(c["passed_check_and_settle"], 1), 4)
-        saved = (a["cpu_s_per_scene"] or 0) - (c["cpu_s_per_scene"] or 0)
-        count, total = rates[tag].get(target, (0, 0))
-        analytic = (
-            count / total * calibration["pass_rate"] / calibration["cpu_s_per_proposal"] if total else None
-        )
-        rows.append(
-            {
-                "tag": tag,
-                "target": target,
-                "reference_rate": {"count": count, "layouts": total, "rate": round(count / max(total, 1), 4)},
-                "a_rejection_sampling": a,
-                "a_analytic_yield_per_cpu_s": round(analytic, 5) if analytic is not None else None,
-                "b_targeted": b,
-                "b_over_a": round(b["yield_per_cpu_s"] / a["yield_per_cpu_s"], 1) if a["verified"] else None,
-                "c_diffusion": c,
-                "c_over_a": round(c["yield_per_cpu_s"] / a["yield_per_cpu_s"], 1) if a["verified"] else None,
-                "c_steps": steps_runs,
-                "break_even_scenes": round(training_cpu_s / saved) if saved > 0 and c["verified"] else None,
-            }
-        )
+            calibrations[target] = calibrate(args, target)
+        row = measure_tag(args, tag, target, generator, calibrations[target], rates, reference_rows)
+        row["break_even_scenes"] = break_even(row, training_cpu_s)
+        rows.append(row)
+        with open(saved_rows, "a", encoding="utf-8") as log:  # a rerun of the same command resumes here
+            log.write(json.dumps(row | {"run_args": run_args(args)}) + "\n")
+        a, b, c = row["a_rejection_sampling"], row["b_targeted"], row["c_diffusion"]
         print(
             f"{tag} ({target}): (a) {a['verified']}/{a['proposals']} in {a['cpu_s']} CPU-s, "
             f"(b) {b['verified']}/{b['proposals']} in {b['cpu_s']} CPU-s, "
             f"(c) {c['verified']}/{c['proposals']} in {c['cpu_s']} CPU-s",
             flush=True,
         )
+    rows.sort(key=lambda r: args.tags.index(r["tag"]))
 
     print(
         "\n| tag | target | ref. rate | (a) scenes / proposals | (a) yield /CPU-s | (a) analytic "
