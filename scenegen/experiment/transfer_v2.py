@@ -22,6 +22,7 @@ hierarchical bootstrap intervals over seeds and layouts (transfer_stats), and th
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import shutil
 import time
@@ -347,9 +348,11 @@ def _grid(records: list[dict], runs: list[str], layouts: list[str]):
     return np.array([[float(index[(run, i)]) for i in layouts] for run in runs])
 
 
+@functools.cache
 def cpu_model() -> str:
-    """The processor's name (/proc/cpuinfo), recorded with each evaluation's costs: parts trained
-    and episodes simulated on another processor may differ in their last bits (docs/transfer.md)."""
+    """The processor's name (/proc/cpuinfo, read once per process), recorded with each evaluation's
+    costs: parts trained and episodes simulated on another processor may differ in their last bits
+    (docs/transfer.md)."""
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
     except OSError:
