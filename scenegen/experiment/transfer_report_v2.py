@@ -16,6 +16,8 @@ from scenegen.core.files import folder_sha256
 from scenegen.store.batch import atomic_write
 
 POSITIVE_CONTROL, PRIMARY = "C - A+", "D - A+"
+# episodes evaluated through another machine's parts, beside the artifact (docs/transfer.md)
+OTHER_MACHINE = "first_machine"
 
 
 def _fmt(x: dict | None) -> str:
@@ -79,8 +81,74 @@ def cost_per_point(metrics: dict, sources: dict) -> dict[str, dict]:
     return out
 
 
-def report(metrics: dict, out: Path, sources: dict) -> str:
-    """The artifact's report.md."""
+def machine_effect(out: Path, other: Path) -> dict[str, dict]:
+    """What another machine's parts moved (docs/transfer.md "Restarted on committed parts"): per run
+    file (arm, seed, sight, condition) on the rare panels that both folders evaluated, paired by
+    (panel, layout): the episodes paired, the success rate here and there, and the share of paired
+    episodes whose outcome agrees. Pooled per arm and sight (nominal conditions only) under ``arms``."""
+
+    def outcomes(folder: Path) -> dict[str, dict[tuple, bool]]:
+        runs: dict[str, dict[tuple, bool]] = {}
+        for path in sorted((Path(folder) / "episodes").glob("*/*.jsonl")):
+            if path.parent.name == "common":
+                continue
+            rows = (json.loads(line) for line in path.read_text().splitlines())
+            runs.setdefault(path.stem, {}).update({(r["panel"], r["layout"]): r["success"] for r in rows})
+        return runs
+
+    here, there = outcomes(out), outcomes(other)
+    per_run, pooled = {}, {}
+    for name in sorted(here.keys() & there.keys()):
+        keys = here[name].keys() & there[name].keys()
+        if not keys:
+            continue
+        a, b = [here[name][k] for k in keys], [there[name][k] for k in keys]
+        row = {
+            "paired": len(keys),
+            "here": sum(a) / len(a),
+            "there": sum(b) / len(b),
+            "agree": sum(x == y for x, y in zip(a, b, strict=True)) / len(keys),
+        }
+        per_run[name] = {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}
+        if "@" not in name:  # nominal: pool per arm and sight
+            run, sight = name.rsplit("_", 1)
+            group = pooled.setdefault(f"{run.rsplit('_s', 1)[0]} {sight}", [])
+            group += list(zip(a, b, strict=True))
+    arms = {
+        name: {
+            "paired": len(pairs),
+            "here": round(sum(x for x, _ in pairs) / len(pairs), 3),
+            "there": round(sum(y for _, y in pairs) / len(pairs), 3),
+            "agree": round(sum(x == y for x, y in pairs) / len(pairs), 3),
+        }
+        for name, pairs in sorted(pooled.items())
+    }
+    return {"runs": per_run, "arms": arms}
+
+
+def machine_lines(effect: dict) -> list[str]:
+    """The report's section on another machine's parts (nothing when no run was evaluated on both)."""
+    if not effect["arms"]:
+        return []
+    lines = [
+        "## Another machine's parts (the first machine's heads and choosers, same data and seeds)",
+        "",
+        "Rare panels, nominal; paired by (panel, layout). Not part of any contrast: it measures what "
+        "retraining the same arm on another processor moves.",
+        "",
+        "| arm, sight | paired episodes | rate here | rate there | outcomes agreeing |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| {name} | {r['paired']} | {r['here']:.3f} | {r['there']:.3f} | {r['agree']:.3f} |"
+        for name, r in effect["arms"].items()
+    ]
+    return lines + [""]
+
+
+def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -> str:
+    """The artifact's report.md; with ``other`` (episodes evaluated through another machine's parts),
+    a last section comparing them."""
     head = metrics.get("head", {})
     rare = head.get("contrasts", {}).get("rare", {})
     lines = [
@@ -143,7 +211,9 @@ def report(metrics: dict, out: Path, sources: dict) -> str:
     for arm, c in cost_per_point(metrics, sources).items():
         per = "no gain over A+" if c["cpu_s_per_point"] is None else f"{c['cpu_s_per_point']} CPU-s per point"
         lines.append(f"- {arm}: {c['cpu_s']} CPU-s; {per}")
-    return "\n".join(lines) + "\n"
+    if other is not None and Path(other).is_dir():
+        lines += [""] + machine_lines(machine_effect(out, other))
+    return "\n".join(lines).rstrip("\n") + "\n"
 
 
 def excludes_zero(contrast: dict) -> bool:
@@ -152,10 +222,12 @@ def excludes_zero(contrast: dict) -> bool:
 
 def finish_v2(config, metrics: dict, out: Path) -> dict:
     """report.md into the artifact, then its checksum and, with ``config.manifest``, the manifest's
-    transfer outcome; returns the checksum and the endpoints."""
+    transfer outcome; returns the checksum and the endpoints. A folder ``first_machine`` beside the
+    artifact (episodes through another machine's parts) adds the report's last section."""
     out = Path(out)
     sources = json.loads((out / "sources.json").read_text())
-    atomic_write(out / "report.md", report(metrics, out, sources).encode())
+    other = out.parent / OTHER_MACHINE
+    atomic_write(out / "report.md", report(metrics, out, sources, other if other.is_dir() else None).encode())
     checksum = folder_sha256(out)
     if config.manifest is not None:
         write_outcome_v2(Path(config.manifest), out, checksum, metrics, config)

@@ -118,6 +118,35 @@ def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run)
     assert not report.violations, report.violations
 
 
+def test_episodes_through_another_machines_parts_are_compared_pair_by_pair(tiny_run, tmp_path):
+    """The report's last section: the same folder agrees with itself in every episode; a copy with one
+    rare-panel outcome flipped agrees in all but that one, and the rates differ by exactly it."""
+    import shutil
+
+    from scenegen.experiment.transfer_report_v2 import machine_effect, report
+
+    config, metrics, _ = tiny_run
+    out = Path(config.out)
+    same = machine_effect(out, out)
+    assert same["arms"] and all(r["agree"] == 1.0 and r["here"] == r["there"] for r in same["arms"].values())
+    other = tmp_path / "first_machine"
+    shutil.copytree(out / "episodes", other / "episodes")
+    path = next(
+        p for p in sorted((other / "episodes").glob("*/A+_s0_head.jsonl")) if p.parent.name != "common"
+    )
+    rows = [json.loads(line) for line in path.read_text().splitlines()]
+    rows[0]["success"] = not rows[0]["success"]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    moved = machine_effect(out, other)
+    pooled = moved["arms"]["A+ head"]
+    assert pooled["agree"] == round(1 - 1 / pooled["paired"], 3)
+    assert abs(pooled["here"] - pooled["there"]) == pytest.approx(1 / pooled["paired"], abs=1e-3)
+    assert moved["arms"]["C head"] == same["arms"]["C head"]
+    sources = json.loads((out / "sources.json").read_text())
+    assert "Another machine's parts" in report(metrics, out, sources, other)
+    assert "Another machine's parts" not in report(metrics, out, sources)
+
+
 def test_ds_share_of_cs_gain_is_the_ratio_of_the_gains_with_its_interval():
     import numpy as np
 
