@@ -350,16 +350,24 @@ def _grid(records: list[dict], runs: list[str], layouts: list[str]):
 
 @functools.cache
 def cpu_model() -> str:
-    """The processor's name (/proc/cpuinfo, read once per process), recorded with each evaluation's
-    costs: parts trained and episodes simulated on another processor may differ in their last bits
-    (docs/transfer.md)."""
+    """The processor's name and the vector instructions it offers of ``VECTOR_FLAGS`` (/proc/cpuinfo,
+    read once per process), recorded with each evaluation's costs: parts trained and episodes
+    simulated on another processor may differ in their last bits (docs/transfer.md), and a virtual
+    machine's name ("Intel(R) Xeon(R) Processor") does not tell two generations apart."""
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
     except OSError:
         import platform
 
         return platform.processor() or platform.machine()
-    return next((x.split(":", 1)[1].strip() for x in lines if x.startswith("model name")), "")
+    name = next((x.split(":", 1)[1].strip() for x in lines if x.startswith("model name")), "")
+    flags = set(next((x.split(":", 1)[1].split() for x in lines if x.startswith("flags")), []))
+    offered = [f for f in VECTOR_FLAGS if f in flags]
+    return f"{name} ({' '.join(offered)})" if offered else name
+
+
+# the instruction sets whose presence changes which kernels torch and numpy run
+VECTOR_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "avx512_fp16", "amx_tile")
 
 
 def episodes_file(out: Path, panel: str, run: str, condition: str) -> Path:
