@@ -99,31 +99,26 @@ def machine_effect(out: Path, other: Path) -> dict[str, dict]:
     here, there = outcomes(out), outcomes(other)
     per_run, pooled = {}, {}
     for name in sorted(here.keys() & there.keys()):
-        keys = here[name].keys() & there[name].keys()
-        if not keys:
+        pairs = [(here[name][k], there[name][k]) for k in here[name].keys() & there[name].keys()]
+        if not pairs:
             continue
-        a, b = [here[name][k] for k in keys], [there[name][k] for k in keys]
-        row = {
-            "paired": len(keys),
-            "here": sum(a) / len(a),
-            "there": sum(b) / len(b),
-            "agree": sum(x == y for x, y in zip(a, b, strict=True)) / len(keys),
-        }
-        per_run[name] = {k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}
+        per_run[name] = _paired(pairs)
         if "@" not in name:  # nominal: pool per arm and sight
             run, sight = name.rsplit("_", 1)
-            group = pooled.setdefault(f"{run.rsplit('_s', 1)[0]} {sight}", [])
-            group += list(zip(a, b, strict=True))
-    arms = {
-        name: {
-            "paired": len(pairs),
-            "here": round(sum(x for x, _ in pairs) / len(pairs), 3),
-            "there": round(sum(y for _, y in pairs) / len(pairs), 3),
-            "agree": round(sum(x == y for x, y in pairs) / len(pairs), 3),
-        }
-        for name, pairs in sorted(pooled.items())
-    }
+            pooled.setdefault(f"{run.rsplit('_s', 1)[0]} {sight}", []).extend(pairs)
+    arms = {name: _paired(pairs) for name, pairs in sorted(pooled.items())}
     return {"runs": per_run, "arms": arms}
+
+
+def _paired(pairs: list[tuple[bool, bool]]) -> dict:
+    """Episodes paired, the success rate here and there, and the share of outcomes that agree."""
+    n = len(pairs)
+    return {
+        "paired": n,
+        "here": round(sum(x for x, _ in pairs) / n, 3),
+        "there": round(sum(y for _, y in pairs) / n, 3),
+        "agree": round(sum(x == y for x, y in pairs) / n, 3),
+    }
 
 
 def machine_lines(effect: dict) -> list[str]:
@@ -211,7 +206,7 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
     for arm, c in cost_per_point(metrics, sources).items():
         per = "no gain over A+" if c["cpu_s_per_point"] is None else f"{c['cpu_s_per_point']} CPU-s per point"
         lines.append(f"- {arm}: {c['cpu_s']} CPU-s; {per}")
-    if other is not None and Path(other).is_dir():
+    if other is not None:
         lines += [""] + machine_lines(machine_effect(out, other))
     return "\n".join(lines).rstrip("\n") + "\n"
 
