@@ -64,6 +64,13 @@ def add_commands(sub) -> None:
         help="version 2: only project the configuration's wall time from the costs.jsonl that earlier "
         "runs wrote into these out folders (a pilot's); writes nothing",
     )
+    tr.add_argument(
+        "--status",
+        action="store_true",
+        help="version 2: only say how far the run in the out folder has come (per arm: runs and "
+        "episodes done; the hours left at the folder's measured rates) and the rates and contrasts "
+        "of the arms already whole; writes nothing",
+    )
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.set_defaults(run=transfer)
     _add_panels(kinds)
@@ -277,6 +284,19 @@ def _estimate(config, folders: list[Path]) -> int:
     return 0
 
 
+def _status(config) -> int:
+    from scenegen.experiment.transfer_config import TransferConfigError
+    from scenegen.experiment.transfer_cost import describe_status, status
+
+    if getattr(config, "version", 1) != 2:
+        raise TransferConfigError("--status: version 2 configurations only (version: 2)")
+    state = status(config)
+    print(describe_status(state))
+    if state["metrics"] is not None:
+        print(_v2_summary(state["metrics"]))
+    return 0
+
+
 def transfer(args: argparse.Namespace) -> int:
     from scenegen.experiment.transfer import TransferError, run_transfer
     from scenegen.experiment.transfer_config import (
@@ -310,6 +330,8 @@ def transfer(args: argparse.Namespace) -> int:
             return 0
         if args.estimate:
             return _estimate(config, args.estimate)
+        if args.status:
+            return _status(config)
         if getattr(config, "version", 1) == 2:
             from scenegen.experiment.transfer_v2 import run_transfer_v2
 

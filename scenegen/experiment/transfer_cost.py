@@ -7,7 +7,10 @@ panels x runs x conditions hold (:func:`planned`). The measured side is the ``co
 ``transfer_v2`` appends as it works: wall seconds per trained head and chooser, and per evaluated
 (run, panel, condition) its episodes, wall seconds, CPU per kind of job and the share of attempts
 the sequence store served (:func:`measured`). :func:`project` multiplies the two; a class never
-measured takes the nominal head's rate (said in the output)."""
+measured takes the nominal head's rate (said in the output). :func:`status` says how far a run that
+goes on across sessions has come (``--status``): what each arm has evaluated, what is left at the
+out folder's own rates, and the contrasts whose arms are whole (the figures the finished run will
+report: each contrast reads its two arms' episodes alone)."""
 
 from __future__ import annotations
 
@@ -111,4 +114,80 @@ def describe(projection: dict, rates: dict) -> str:
         f"       {projection['total_hours_at_cpu']:.2f} h with the episodes' CPU-s spread over the "
         "workers (no waiting: the floor where the measuring machine was shared)"
     )
+    return "\n".join(lines)
+
+
+def status(config: TransferConfigV2) -> dict:
+    """Where the run of ``config`` stands, read from its out folder (writes nothing): per arm its
+    runs evaluated whole and its episodes done of planned (an episodes file is written whole, so one
+    that exists is done), the episodes left per condition class and their hours at the folder's own
+    measured rates, and ``metrics_v2`` over the arms whose every file is there."""
+    from scenegen.experiment.transfer_v2 import conditions, episodes_file, metrics_v2, panels_v2, runs_v2
+
+    out, panels = Path(config.out), panels_v2(config)
+    arms: dict = {arm: {"runs": 0, "whole": 0, "episodes": 0, "done": 0} for arm in config.arms}
+    left: Counter = Counter()
+    for run in runs_v2(config):
+        row, whole = arms[run["arm"]], True
+        for panel, scenes in panels.items():
+            for condition, _ in conditions(config, run, panel):
+                row["episodes"] += len(scenes)
+                if episodes_file(out, panel, run["name"], condition).is_file():
+                    row["done"] += len(scenes)
+                else:
+                    whole = False
+                    left[condition_class(condition)] += len(scenes)
+        row["runs"] += 1
+        row["whole"] += whole
+    rates = measured([out]) if (out / "costs.jsonl").is_file() else {"episodes": {}}
+    base = rates["episodes"].get("head")
+    hours = {"wall": 0.0, "cpu": 0.0}
+    for kind, n in left.items():
+        rate = rates["episodes"].get(kind, base)
+        if rate is None:
+            hours = None
+            break
+        hours["wall"] += n * rate["wall_s"] / 3600
+        hours["cpu"] += n * rate["cpu_s"] / config.workers / 3600
+    whole = [arm for arm, row in arms.items() if row["runs"] == row["whole"]]
+    metrics = None
+    if whole:
+        part = config.model_copy(update={"arms": tuple(whole)})
+        metrics = metrics_v2(part, runs_v2(part), panels, out)
+    return {
+        "out": str(out),
+        "arms": arms,
+        "left": dict(left),
+        "hours_left": hours and {k: round(v, 2) for k, v in hours.items()},
+        "whole_arms": whole,
+        "metrics": metrics,
+    }
+
+
+def describe_status(state: dict) -> str:
+    """:func:`status` as lines a person reads."""
+    arms = state["arms"]
+    done, planned_ = sum(r["done"] for r in arms.values()), sum(r["episodes"] for r in arms.values())
+    lines = [f"{state['out']}: {done:,} of {planned_:,} episodes evaluated ({done / planned_:.0%})"]
+    for arm, row in arms.items():
+        lines.append(
+            f"  {arm}: {row['whole']} of {row['runs']} runs whole, "
+            f"{row['done']:,} of {row['episodes']:,} episodes"
+        )
+    hours = state["hours_left"]
+    if not state["left"]:
+        lines.append(
+            "every episode is in: rerun the command to write metrics.json, the report and the outcome"
+        )
+    elif hours is None:
+        lines.append(f"left: {sum(state['left'].values()):,} episodes (no rate measured yet in this folder)")
+    else:
+        lines.append(
+            f"left: {sum(state['left'].values()):,} episodes, about {hours['wall']:.1f} h of wall at this "
+            f"folder's measured rates ({hours['cpu']:.1f} h with its CPU-s spread over the workers)"
+        )
+    if state["metrics"] is None:
+        lines.append("no arm is whole yet: no contrast to show")
+    else:
+        lines.append(f"whole arms: {', '.join(state['whole_arms'])} (their figures are final: below)")
     return "\n".join(lines)

@@ -316,3 +316,33 @@ def test_version_2_draws_its_rare_data_for_the_tags_that_have_a_panel():
     config = load_transfer_config(None, {"version": 2})
     panels = panel_scenes(load_panels_v2(config.panels), "validation")
     assert set(config.tags) == set(panels) - {"common"} and "under_overhang" not in config.tags
+
+
+def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_run, tmp_path, capsys):
+    """--status reads the out folder: with one of C's files gone C is not whole, its episodes are
+    left, and the rates shown (A+'s, whole) are the finished run's figures; it writes nothing."""
+    import shutil
+
+    from scenegen.cli import main
+    from scenegen.experiment.transfer_cost import status
+
+    config, metrics, _ = tiny_run
+    whole = status(config)
+    assert not whole["left"] and whole["whole_arms"] == ["A+", "C"]
+    assert whole["metrics"]["head"]["contrasts"] == metrics["head"]["contrasts"]
+    copy = tmp_path / "result"
+    shutil.copytree(config.out, copy)
+    gone = copy / "episodes" / "toppled" / "C_s1_head.jsonl"
+    lost = len(gone.read_text().splitlines())
+    gone.unlink()
+    before = sorted(p.relative_to(copy) for p in copy.rglob("*"))
+    part = status(config.model_copy(update={"out": str(copy)}))
+    assert part["arms"]["C"]["whole"] == part["arms"]["C"]["runs"] - 1
+    assert part["arms"]["C"]["episodes"] - part["arms"]["C"]["done"] == lost
+    assert part["left"] == {"head": lost} and part["hours_left"]["wall"] > 0
+    assert part["whole_arms"] == ["A+"] and "C" not in part["metrics"]["head"]["rates"]["rare"]
+    assert part["metrics"]["head"]["rates"]["rare"]["A+"] == metrics["head"]["rates"]["rare"]["A+"]
+    assert sorted(p.relative_to(copy) for p in copy.rglob("*")) == before
+    assert main(["experiment", "transfer", str(TINY), "--out", str(copy), "--status"]) == 0
+    said = capsys.readouterr().out
+    assert f"left: {lost} episodes" in said and "whole arms: A+" in said and "C - A+" not in said
