@@ -158,7 +158,7 @@ def status(config: TransferConfigV2) -> dict:
         "out": str(out),
         "arms": arms,
         "left": dict(left),
-        "hours_left": hours and {k: round(v, 2) for k, v in hours.items()},
+        "hours_left": hours,
         "whole_arms": whole,
         "metrics": metrics,
     }

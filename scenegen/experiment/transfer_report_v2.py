@@ -2,7 +2,8 @@
 (``transfer_v2.metrics_v2``), the episodes and ``sources.json``, the artifact's ``report.md`` in the
 order the issue asks (the positive control C - A+ first, the primary endpoint D - A+, the other
 contrasts, D's share of C's gain, per-seed rates, generation CPU-s and CPU-s per point, per-panel
-closed-loop and head tables, the perturbations, the oracle rows, the failure labels) and, when the
+closed-loop and head tables, the perturbations, the oracle rows, the failure labels; what was run:
+each condition's runs, so the configuration's cuts show) and, when the
 configuration names a manifest, its transfer outcome (version 2) with the artifact's sha256."""
 
 from __future__ import annotations
@@ -168,6 +169,7 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
         lines.append(f"- D's share of the C - A+ gain: {_fmt(share)}")
     elif share:  # a ratio over a gain that may be 0 or negative says nothing
         lines.append("- D's share of the C - A+ gain: undefined (C - A+ is not above 0)")
+    lines += ["", *scope_lines(metrics)]
     lines += [
         "",
         "## Per arm (rare panels pooled) and per seed",
@@ -193,6 +195,14 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
         for group, by_arm in rates.items():
             lines.append(f"| {group} | " + " | ".join(_rate(by_arm.get(a)) for a in arms) + " |")
         lines.append("")
+    contrasts = head.get("contrasts", {})
+    names = list(contrasts.get("rare", {}))
+    if names:
+        lines += ["## Contrasts per panel (through the heads)", ""]
+        lines += ["| panel | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+        for group, by_name in contrasts.items():
+            lines.append(f"| {group} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |")
+        lines.append("")
     lines += ["## The heads, offline: first decision overlapping the target", ""]
     table = head_table(out, list(head.get("rates", {}).get("rare", {})))
     arms = sorted({a for row in table.values() for a in row})
@@ -209,6 +219,28 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
     if other is not None:
         lines += [""] + machine_lines(machine_effect(out, other))
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def scope_lines(metrics: dict) -> list[str]:
+    """What was run: each arm's training seeds, the panels with their layouts, the conditions and
+    which arms and seeds each covers (the cuts of the configuration show here), and the tag left out."""
+    seeds: dict[str, list[int]] = {}
+    for run in metrics.get("runs", []):
+        seeds.setdefault(run["arm"], []).append(run["seed"])
+    panels = metrics.get("panels", {})
+    lines = [
+        "## What was run",
+        "",
+        "- arms and training seeds: " + "; ".join(f"{a} {s}" for a, s in seeds.items()),
+        "- panels (layouts): " + ", ".join(f"{p} {len(ids)}" for p, ids in panels.items()),
+        "- under_overhang has no panel (too few solvable layouts on either side): out of scope",
+    ]
+    for condition, block in metrics.items():
+        if not (isinstance(block, dict) and "per_seed" in block):
+            continue
+        runs = sorted({n for group in block["per_seed"].values() for n in group})
+        lines.append(f"- {condition}: {', '.join(runs)}")
+    return lines
 
 
 def excludes_zero(contrast: dict) -> bool:

@@ -108,6 +108,11 @@ def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run)
         text.index("Positive control C - A+") < text.index("Primary endpoint D - A+") < text.index("Per arm")
     )
     assert "Failure labels" in text and "Generation CPU-s" in text
+    # what was run, the cuts showing (oracle rows on seed 0, the shift on C's seed 0 only)
+    assert "- arms and training seeds: A+ [0, 1]; C [0, 1]" in text and "toppled 2, common 1" in text
+    assert "\n- oracle: A+_s0, C_s0\n" in text and "\n- head@depth_noise: C_s0\n" in text
+    toppled = metrics["head"]["contrasts"]["toppled"]["C - A+"]
+    assert f"| toppled | {toppled['mean']:+.3f} [" in text.split("## Contrasts per panel")[1]
     outcome = read_manifest(Path(config.manifest)).transfer
     assert outcome.status == "measured" and outcome.metrics["version"] == 2
     control = outcome.metrics["positive_control"]
@@ -324,7 +329,7 @@ def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_
     import shutil
 
     from scenegen.cli import main
-    from scenegen.experiment.transfer_cost import status
+    from scenegen.experiment.transfer_cost import measured, status
 
     config, metrics, _ = tiny_run
     whole = status(config)
@@ -339,7 +344,9 @@ def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_
     part = status(config.model_copy(update={"out": str(copy)}))
     assert part["arms"]["C"]["whole"] == part["arms"]["C"]["runs"] - 1
     assert part["arms"]["C"]["episodes"] - part["arms"]["C"]["done"] == lost
-    assert part["left"] == {"head": lost} and part["hours_left"]["wall"] > 0
+    assert part["left"] == {"head": lost}
+    rate = measured([copy])["episodes"]["head"]  # the folder's own rate, what the left work costs
+    assert part["hours_left"]["wall"] == pytest.approx(lost * rate["wall_s"] / 3600)
     assert part["whole_arms"] == ["A+"] and "C" not in part["metrics"]["head"]["rates"]["rare"]
     assert part["metrics"]["head"]["rates"]["rare"]["A+"] == metrics["head"]["rates"]["rare"]["A+"]
     assert sorted(p.relative_to(copy) for p in copy.rglob("*")) == before
