@@ -27,7 +27,7 @@ def read_episodes(out: Path) -> list[dict]:
 
 
 def compute_metrics(config: TransferConfig, all_runs: list[dict], panels: dict, records: list[dict]) -> dict:
-    """Every figure of the report (see docs/transfer.md, 'Statistics')."""
+    """Every figure of the report (see docs/transfer_v1.md, 'Statistics')."""
     boot, seed = config.bootstrap, config.seed
     episodes: dict[tuple[str, str], list[dict]] = {}
     for r in records:

@@ -18,7 +18,7 @@ HOLD_TIME = 1.0  # s the lift must last
 # s of simulated time for one episode, every attempt counted from the episode's start. 45 s: the
 # longest single primitive, pull_out_then_grasp, ran up to 43.25 s (median success 30.6 s) in the
 # 13,390 rows of assets/transfer/labels.parquet; version 1 of the transfer experiment had 30 s, which
-# cut most pull_out successes, and did not enforce it on a success (docs/transfer.md).
+# cut most pull_out successes, and did not enforce it on a success (docs/transfer_v1.md).
 TIME_LIMIT = 45.0
 NONE, TARGET, FURNITURE, OTHER = 0, 1, 2, 3  # what a body the robot touches is
 
