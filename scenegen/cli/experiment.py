@@ -56,7 +56,8 @@ def add_commands(sub) -> None:
         action="store_true",
         help="only validate the configuration and the files and recipes it names; writes nothing",
     )
-    tr.add_argument(
+    only = tr.add_mutually_exclusive_group()
+    only.add_argument(
         "--estimate",
         type=Path,
         nargs="+",
@@ -64,7 +65,7 @@ def add_commands(sub) -> None:
         help="version 2: only project the configuration's wall time from the costs.jsonl that earlier "
         "runs wrote into these out folders (a pilot's); writes nothing",
     )
-    tr.add_argument(
+    only.add_argument(
         "--status",
         action="store_true",
         help="version 2: only say how far the run in the out folder has come (per arm: runs and "

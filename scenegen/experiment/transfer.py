@@ -1,6 +1,6 @@
-"""The transfer experiment (``scenegen experiment transfer [CONFIG]``; docs/transfer.md): do generated
-rare-case scenes, added to a small labelled reference set, make a policy succeed more often in closed
-loop on held-out rare cases?
+"""The transfer experiment (``scenegen experiment transfer [CONFIG]``; version 1: docs/transfer_v1.md):
+do generated rare-case scenes, added to a small labelled reference set, make a policy succeed more
+often in closed loop on held-out rare cases?
 
 Stages, each resumable (a killed run continues where it stopped):
 

@@ -1,5 +1,6 @@
 """The transfer experiment's configuration (``pipelines/transfer.yaml``; docs/transfer.md explains
-every key). Unknown keys, wrong types and out-of-range numbers are one-line errors naming the key."""
+version 2's keys, docs/transfer_v1.md version 1's). Unknown keys, wrong types and out-of-range
+numbers are one-line errors naming the key."""
 
 from __future__ import annotations
 

@@ -117,31 +117,61 @@ def describe(projection: dict, rates: dict) -> str:
     return "\n".join(lines)
 
 
+# where a configuration keeps things, not what it runs: they may differ between machines
+STORAGE_KEYS = ("cache", "label_store", "path_store", "batches", "out")
+
+
+def check_folder(config: TransferConfigV2) -> None:
+    """Refuse (TransferError, one line) an out folder that holds no run, or another configuration's
+    run (its config.yaml differs in what is run; storage keys aside): file names do not say which
+    side or sizes their episodes came from."""
+    import yaml
+
+    from scenegen.experiment.transfer import TransferError
+    from scenegen.experiment.transfer_v2 import resolved_config
+
+    held = Path(config.out) / "config.yaml"
+    if not held.is_file():
+        raise TransferError(f"{config.out}: no run here yet (no config.yaml); start it without --status")
+    mine, theirs = yaml.safe_load(resolved_config(config)), yaml.safe_load(held.read_text()) or {}
+    keys = sorted({k for k in (*mine, *theirs) if k not in STORAGE_KEYS and mine.get(k) != theirs.get(k)})
+    if keys:
+        raise TransferError(
+            f"{config.out}: holds another configuration's run (config.yaml differs in {', '.join(keys)}); "
+            "name the configuration it ran"
+        )
+
+
 def status(config: TransferConfigV2) -> dict:
-    """Where the run of ``config`` stands, read from its out folder (writes nothing): per arm its
-    runs evaluated whole and its episodes done of planned (an episodes file is written whole, so one
-    that exists is done), the episodes left per condition class and their hours at the folder's own
-    measured rates, and ``metrics_v2`` over the arms whose every file is there."""
+    """Where the run of ``config`` stands, read from its out folder (writes nothing; refuses a
+    folder of another configuration, :func:`check_folder`): per arm its runs evaluated whole and its
+    episodes done of planned (an episodes file is written whole, so one that exists is done), the
+    episodes left per condition class and the hours their evaluation takes at the folder's own
+    measured rates (a class not measured there at the nominal head's: ``assumed_like_head``), and
+    ``metrics_v2`` over the arms whose every file is there: a contrast reads its two arms' episodes
+    alone, with a bootstrap seed set by its panel group, so these are the finished run's figures."""
     from scenegen.experiment.transfer_v2 import conditions, episodes_file, metrics_v2, panels_v2, runs_v2
 
+    check_folder(config)
     out, panels = Path(config.out), panels_v2(config)
     arms: dict = {arm: {"runs": 0, "whole": 0, "episodes": 0, "done": 0} for arm in config.arms}
     left: Counter = Counter()
     for run in runs_v2(config):
-        row, whole = arms[run["arm"]], True
+        row, complete = arms[run["arm"]], True
         for panel, scenes in panels.items():
             for condition, _ in conditions(config, run, panel):
                 row["episodes"] += len(scenes)
                 if episodes_file(out, panel, run["name"], condition).is_file():
                     row["done"] += len(scenes)
                 else:
-                    whole = False
+                    complete = False
                     left[condition_class(condition)] += len(scenes)
         row["runs"] += 1
-        row["whole"] += whole
+        row["whole"] += complete
     rates = measured([out]) if (out / "costs.jsonl").is_file() else {"episodes": {}}
     base = rates["episodes"].get("head")
-    hours = {"wall": 0.0, "cpu": 0.0}
+    hours: dict | None = {"wall": 0.0, "cpu": 0.0}
+    assumed = sorted(kind for kind in left if kind not in rates["episodes"])
     for kind, n in left.items():
         rate = rates["episodes"].get(kind, base)
         if rate is None:
@@ -159,6 +189,7 @@ def status(config: TransferConfigV2) -> dict:
         "arms": arms,
         "left": dict(left),
         "hours_left": hours,
+        "assumed_like_head": assumed,
         "whole_arms": whole,
         "metrics": metrics,
     }
@@ -168,23 +199,26 @@ def describe_status(state: dict) -> str:
     """:func:`status` as lines a person reads."""
     arms = state["arms"]
     done, planned_ = sum(r["done"] for r in arms.values()), sum(r["episodes"] for r in arms.values())
-    lines = [f"{state['out']}: {done:,} of {planned_:,} episodes evaluated ({done / planned_:.0%})"]
+    share = f"{int(1000 * done / planned_) / 10:.1f} %"  # rounded down: 100 % only when all is in
+    lines = [f"{state['out']}: {done:,} of {planned_:,} episodes evaluated ({share})"]
     for arm, row in arms.items():
         lines.append(
             f"  {arm}: {row['whole']} of {row['runs']} runs whole, "
             f"{row['done']:,} of {row['episodes']:,} episodes"
         )
-    hours = state["hours_left"]
-    if not state["left"]:
+    hours, left = state["hours_left"], sum(state["left"].values())
+    if not left:
         lines.append(
             "every episode is in: rerun the command to write metrics.json, the report and the outcome"
         )
     elif hours is None:
-        lines.append(f"left: {sum(state['left'].values()):,} episodes (no rate measured yet in this folder)")
+        lines.append(f"evaluation left: {left:,} episodes (no rate measured yet in this folder)")
     else:
+        assumed = state["assumed_like_head"]
         lines.append(
-            f"left: {sum(state['left'].values()):,} episodes, about {hours['wall']:.1f} h of wall at this "
-            f"folder's measured rates ({hours['cpu']:.1f} h with its CPU-s spread over the workers)"
+            f"evaluation left: {left:,} episodes, about {hours['wall']:.1f} h of wall at this folder's "
+            f"measured rates ({hours['cpu']:.1f} h with its CPU-s spread over the workers)"
+            + (f"; {', '.join(assumed)} not measured here: at the head's rate" if assumed else "")
         )
     if state["metrics"] is None:
         lines.append("no arm is whole yet: no contrast to show")

@@ -323,9 +323,16 @@ def test_version_2_draws_its_rare_data_for_the_tags_that_have_a_panel():
     assert set(config.tags) == set(panels) - {"common"} and "under_overhang" not in config.tags
 
 
+def _digests(folder: Path) -> dict:
+    import hashlib
+
+    return {p.relative_to(folder): hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.rglob("*.*")}
+
+
 def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_run, tmp_path, capsys):
     """--status reads the out folder: with one of C's files gone C is not whole, its episodes are
-    left, and the rates shown (A+'s, whole) are the finished run's figures; it writes nothing."""
+    left at the folder's measured rate, and the rates shown (A+'s, whole) are the finished run's
+    figures; it writes nothing, and refuses a folder with no run or another configuration's."""
     import shutil
 
     from scenegen.cli import main
@@ -340,16 +347,48 @@ def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_
     gone = copy / "episodes" / "toppled" / "C_s1_head.jsonl"
     lost = len(gone.read_text().splitlines())
     gone.unlink()
-    before = sorted(p.relative_to(copy) for p in copy.rglob("*"))
+    before = _digests(copy)
     part = status(config.model_copy(update={"out": str(copy)}))
     assert part["arms"]["C"]["whole"] == part["arms"]["C"]["runs"] - 1
     assert part["arms"]["C"]["episodes"] - part["arms"]["C"]["done"] == lost
-    assert part["left"] == {"head": lost}
+    assert part["left"] == {"head": lost} and not part["assumed_like_head"]
     rate = measured([copy])["episodes"]["head"]  # the folder's own rate, what the left work costs
     assert part["hours_left"]["wall"] == pytest.approx(lost * rate["wall_s"] / 3600)
     assert part["whole_arms"] == ["A+"] and "C" not in part["metrics"]["head"]["rates"]["rare"]
     assert part["metrics"]["head"]["rates"]["rare"]["A+"] == metrics["head"]["rates"]["rare"]["A+"]
-    assert sorted(p.relative_to(copy) for p in copy.rglob("*")) == before
     assert main(["experiment", "transfer", str(TINY), "--out", str(copy), "--status"]) == 0
     said = capsys.readouterr().out
-    assert f"left: {lost} episodes" in said and "whole arms: A+" in said and "C - A+" not in said
+    assert f"evaluation left: {lost} episodes" in said and "whole arms: A+" in said and "C - A+" not in said
+    assert _digests(copy) == before
+    assert main(["experiment", "transfer", str(TINY), "--out", str(tmp_path), "--status"]) != 0
+    assert "no run here yet" in capsys.readouterr().err
+    changed = tmp_path / "changed.yaml"  # what is run differs (the seed), the folder is the same
+    changed.write_text(yaml.safe_dump(yaml.safe_load(TINY.read_text()) | {"seed": 29}))
+    assert main(["experiment", "transfer", str(changed), "--out", str(copy), "--status"]) != 0
+    assert "another configuration's run (config.yaml differs in seed)" in capsys.readouterr().err
+
+
+def test_a_contrast_of_whole_arms_does_not_depend_on_the_arms_beside_it(tiny_run, tmp_path):
+    """What --status shows before the last arm lands is the finished figure: metrics over A+ and C
+    equal those over A+, C and a third arm (C's episodes copied as D's), contrasts and per-seed rates."""
+    import shutil
+
+    from scenegen.experiment.transfer_v2 import metrics_v2, panels_v2
+
+    config, _, _ = tiny_run
+    copy = tmp_path / "result"
+    shutil.copytree(config.out, copy)
+    for path in list((copy / "episodes").rglob("C_s*.jsonl")):
+        run = path.name.split("_")[0] + "_" + path.name.split("_")[1]  # C_s0
+        twin = path.with_name("D" + path.name[1:])
+        twin.write_text(path.read_text().replace(f'"policy": "{run}"', f'"policy": "D{run[1:]}"'))
+    two = config.model_copy(update={"out": str(copy)})
+    three = two.model_copy(update={"arms": ("A+", "C", "D")})
+    panels = panels_v2(two)
+    small, big = metrics_v2(two, runs_v2(two), panels, copy), metrics_v2(three, runs_v2(three), panels, copy)
+    for condition in ("head", "oracle"):
+        assert big[condition]["contrasts"]["rare"]["D - C"]["mean"] == 0  # the copy is C's own
+        for group, contrasts in small[condition]["contrasts"].items():
+            assert big[condition]["contrasts"][group]["C - A+"] == contrasts["C - A+"]
+        for group, rates in small[condition]["rates"].items():
+            assert {a: big[condition]["rates"][group][a] for a in rates} == rates
