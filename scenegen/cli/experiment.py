@@ -263,8 +263,10 @@ def _v2_summary(metrics: dict) -> str:
             continue
         lines.append(f"{sight}: rare panels pooled")
         fmt = lambda c: f"{c['mean']:+.3f} [{c['low']:+.3f}, {c['high']:+.3f}]"  # noqa: E731
-        for arm, c in block["rates"]["rare"].items():
-            lines.append(f"  {arm}: {fmt(c)} ({c['seeds']} seeds x {c['scenes']} layouts)")
+        for arm, c in block["rates"]["rare"].items():  # a rate, unsigned; a contrast, signed
+            rate = f"{c['mean']:.3f} [{c['low']:.3f}, {c['high']:.3f}]"
+            seeds = f"{c['seeds']} seed" + "s" * (c["seeds"] != 1)
+            lines.append(f"  {arm}: {rate} ({seeds} x {c['scenes']} layouts)")
         for name, c in block["contrasts"]["rare"].items():
             lines.append(f"  {name}: {fmt(c)}")
     return "\n".join(lines)
