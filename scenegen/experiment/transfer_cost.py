@@ -41,10 +41,8 @@ def planned(config: TransferConfigV2) -> dict:
     return {"runs": len(runs), "panels": sizes, "episodes": {c: episodes[c] for c in CLASSES}}
 
 
-def measured(folders) -> dict:
-    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head (of the run's wall: a
-    head's own over the number trained at once) and per chooser trained,
-    and per class the wall and CPU seconds per episode and the share of attempts served."""
+def cost_rows(folders) -> list[dict]:
+    """Every row of the ``costs.jsonl`` of ``folders``."""
     rows = []
     for folder in folders:
         path = Path(folder) / "costs.jsonl"
@@ -55,6 +53,40 @@ def measured(folders) -> dict:
                 rows.append(json.loads(line))
             except json.JSONDecodeError:
                 continue  # a line torn by a kill (or being written): it counts nothing
+    return rows
+
+
+def totals(folder) -> dict:
+    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours; heads
+    trained ``parallel`` at a time count their wall over that), and per condition class the episodes
+    evaluated, their wall and CPU hours, and the processors that evaluated them (episodes each)."""
+    rows = cost_rows([folder])
+    out: dict = {}
+    for stage in ("head", "chooser"):
+        mine = [r for r in rows if r.get("stage") == stage]
+        wall = sum(r["wall_s"] / r.get("parallel", 1) for r in mine)
+        out[stage] = {"n": len(mine), "wall_h": round(wall / 3600, 2)}
+    evaluated = [r for r in rows if "condition" in r]
+    out["episodes"] = {}
+    for kind in CLASSES:
+        mine = [r for r in evaluated if condition_class(r["condition"]) == kind]
+        out["episodes"][kind] = {
+            "n": sum(r["episodes"] for r in mine),
+            "wall_h": round(sum(r["wall_s"] for r in mine) / 3600, 2),
+            "cpu_h": round(sum(sum(r["cpu_seconds"].values()) for r in mine) / 3600, 2),
+        }
+    processors: Counter = Counter()
+    for r in evaluated:
+        processors[r.get("cpu", "not recorded")] += r["episodes"]
+    out["processors"] = dict(processors)
+    return out
+
+
+def measured(folders) -> dict:
+    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head (of the run's wall: a
+    head's own over the number trained at once) and per chooser trained,
+    and per class the wall and CPU seconds per episode and the share of attempts served."""
+    rows = cost_rows(folders)
     out: dict = {"training": {}, "episodes": {}}
     for stage in ("head", "chooser"):
         # heads trained ``parallel`` at a time (transfer_v2.train_heads) cost their wall over that

@@ -217,6 +217,7 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
     for arm, c in cost_per_point(metrics, sources).items():
         per = "no gain over A+" if c["cpu_s_per_point"] is None else f"{c['cpu_s_per_point']} CPU-s per point"
         lines.append(f"- {arm}: {c['cpu_s']} CPU-s; {per}")
+    lines += ["", *cost_lines(out)]
     if other is not None:
         lines += [""] + machine_lines(machine_effect(out, other))
     return "\n".join(lines).rstrip("\n") + "\n"
@@ -243,6 +244,27 @@ def scope_lines(metrics: dict) -> list[str]:
             continue
         runs = sorted({n for group in block["per_seed"].values() for n in group})
         lines.append(f"- {condition}: {', '.join(runs)}")
+    return lines
+
+
+def cost_lines(out: Path) -> list[str]:
+    """What the run spent (``transfer_cost.totals`` over its costs.jsonl): training, and evaluation
+    per condition class, wall and CPU hours, and the processors that evaluated."""
+    from scenegen.experiment.transfer_cost import totals
+
+    spent = totals(out)
+    lines = [
+        "## What the run cost (costs.jsonl)",
+        "",
+        "Wall hours as measured, including any time the machine was shared; CPU hours of the evaluation "
+        "jobs.",
+        "",
+        f"- heads: {spent['head']['n']} trained, {spent['head']['wall_h']} h of wall",
+        f"- choosers: {spent['chooser']['n']} trained, {spent['chooser']['wall_h']} h of wall",
+    ]
+    for kind, c in spent["episodes"].items():
+        lines.append(f"- {c['n']:,} episodes {kind}: {c['wall_h']} h of wall, {c['cpu_h']} CPU-h")
+    lines += [f"- evaluated on {cpu}: {n} episodes" for cpu, n in spent["processors"].items()]
     return lines
 
 

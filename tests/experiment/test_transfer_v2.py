@@ -113,6 +113,10 @@ def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run)
     assert "\n- oracle: A+_s0, C_s0\n" in text and "\n- head@depth_noise: C_s0\n" in text
     toppled = metrics["head"]["contrasts"]["toppled"]["C - A+"]
     assert f"| toppled | {toppled['mean']:+.3f} [" in text.split("## Contrasts per panel")[1]
+    # what it cost, summed from costs.jsonl: every part trained, every episode evaluated
+    spent = text.split("## What the run cost")[1]
+    assert "- heads: 4 trained" in spent and "- choosers: 4 trained" in spent
+    assert "- 12 episodes head: " in spent and "- 2 episodes oracle@shift: " in spent
     outcome = read_manifest(Path(config.manifest)).transfer
     assert outcome.status == "measured" and outcome.metrics["version"] == 2
     control = outcome.metrics["positive_control"]
