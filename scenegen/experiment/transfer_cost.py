@@ -56,28 +56,46 @@ def cost_rows(folders) -> list[dict]:
     return rows
 
 
-def totals(folder) -> dict:
-    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours; heads
-    trained ``parallel`` at a time count their wall over that), and per condition class the episodes
-    evaluated, their wall and CPU hours, and the processors that evaluated them (episodes each)."""
-    rows = cost_rows([folder])
-    out: dict = {}
+def _sums(rows: list[dict]) -> dict:
+    """The sums both :func:`totals` and :func:`measured` read: per training stage the parts and
+    their wall seconds (heads trained ``parallel`` at a time, transfer_v2.train_heads, count their
+    wall over that), per condition class the episodes, wall and CPU seconds, attempts and attempts
+    the sequence store served."""
+    sums: dict = {"training": {}, "episodes": {}}  # a stage and a class are both called "head"
     for stage in ("head", "chooser"):
         mine = [r for r in rows if r.get("stage") == stage]
-        wall = sum(r["wall_s"] / r.get("parallel", 1) for r in mine)
-        out[stage] = {"n": len(mine), "wall_h": round(wall / 3600, 2)}
-    evaluated = [r for r in rows if "condition" in r]
-    out["episodes"] = {}
-    for kind in CLASSES:
-        mine = [r for r in evaluated if condition_class(r["condition"]) == kind]
-        out["episodes"][kind] = {
-            "n": sum(r["episodes"] for r in mine),
-            "wall_h": round(sum(r["wall_s"] for r in mine) / 3600, 2),
-            "cpu_h": round(sum(sum(r["cpu_seconds"].values()) for r in mine) / 3600, 2),
+        sums["training"][stage] = {
+            "n": len(mine),
+            "wall_s": sum(r["wall_s"] / r.get("parallel", 1) for r in mine),
         }
+    for kind in CLASSES:
+        mine = [r for r in rows if "condition" in r and condition_class(r["condition"]) == kind]
+        sums["episodes"][kind] = {
+            "n": sum(r["episodes"] for r in mine),
+            "wall_s": sum(r["wall_s"] for r in mine),
+            "cpu_s": sum(sum(r["cpu_seconds"].values()) for r in mine),
+            "attempts": sum(r["attempts"] for r in mine),
+            "shared": sum(r["shared"] for r in mine),
+        }
+    return sums
+
+
+def totals(folder) -> dict:
+    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours), and
+    per condition class the episodes evaluated, their wall and CPU hours, and the processors that
+    evaluated them (episodes each)."""
+    rows = cost_rows([folder])
+    sums = _sums(rows)
+    hours = lambda seconds: round(seconds / 3600, 2)  # noqa: E731
+    out: dict = {s: {"n": c["n"], "wall_h": hours(c["wall_s"])} for s, c in sums["training"].items()}
+    out["episodes"] = {
+        k: {"n": c["n"], "wall_h": hours(c["wall_s"]), "cpu_h": hours(c["cpu_s"])}
+        for k, c in sums["episodes"].items()
+    }
     processors: Counter = Counter()
-    for r in evaluated:
-        processors[r.get("cpu", "not recorded")] += r["episodes"]
+    for r in rows:
+        if "condition" in r:
+            processors[r.get("cpu", "not recorded")] += r["episodes"]
     out["processors"] = dict(processors)
     return out
 
@@ -86,23 +104,18 @@ def measured(folders) -> dict:
     """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head (of the run's wall: a
     head's own over the number trained at once) and per chooser trained,
     and per class the wall and CPU seconds per episode and the share of attempts served."""
-    rows = cost_rows(folders)
+    sums = _sums(cost_rows(folders))
     out: dict = {"training": {}, "episodes": {}}
-    for stage in ("head", "chooser"):
-        # heads trained ``parallel`` at a time (transfer_v2.train_heads) cost their wall over that
-        walls = [r["wall_s"] / r.get("parallel", 1) for r in rows if r.get("stage") == stage]
-        if walls:
-            out["training"][stage] = {"wall_s": round(sum(walls) / len(walls), 1), "n": len(walls)}
-    for kind in CLASSES:
-        mine = [r for r in rows if "condition" in r and condition_class(r["condition"]) == kind]
-        episodes = sum(r["episodes"] for r in mine)
-        if episodes:
-            attempts = sum(r["attempts"] for r in mine)
+    for stage, c in sums["training"].items():
+        if c["n"]:
+            out["training"][stage] = {"wall_s": round(c["wall_s"] / c["n"], 1), "n": c["n"]}
+    for kind, c in sums["episodes"].items():
+        if c["n"]:
             out["episodes"][kind] = {
-                "wall_s": round(sum(r["wall_s"] for r in mine) / episodes, 3),
-                "cpu_s": round(sum(sum(r["cpu_seconds"].values()) for r in mine) / episodes, 3),
-                "served": round(sum(r["shared"] for r in mine) / attempts, 4) if attempts else None,
-                "n": episodes,
+                "wall_s": round(c["wall_s"] / c["n"], 3),
+                "cpu_s": round(c["cpu_s"] / c["n"], 3),
+                "served": round(c["shared"] / c["attempts"], 4) if c["attempts"] else None,
+                "n": c["n"],
             }
     return out
 
