@@ -65,7 +65,7 @@ bench-user-assets: setup  ## user assets with the generator: known categories; a
 	$(BIN)/python benchmarks/user_assets.py --n 30 $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
 test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=25
 
 test-fast: setup install-exporters  ## everything but the slow end-to-end tests
 	$(BIN)/python -m pytest -q -m "not slow"

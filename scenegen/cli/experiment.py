@@ -274,7 +274,8 @@ def _v2_summary(metrics: dict) -> str:
 
 def _estimate(config, folders: list[Path]) -> int:
     from scenegen.experiment.transfer_config import TransferConfigError
-    from scenegen.experiment.transfer_cost import describe, measured, project
+    from scenegen.experiment.transfer_cost import describe, project
+    from scenegen.experiment.transfer_ledger import measured
 
     if getattr(config, "version", 1) != 2:
         raise TransferConfigError("--estimate: version 2 configurations only (version: 2)")

@@ -3,10 +3,8 @@ point 5; ``scenegen experiment transfer CONFIG --estimate FOLDER...``; docs/tran
 
 The work of a configuration is counted, not guessed: its runs (each a head and a chooser to train)
 and, per condition class (through the head or true masks, nominal or shifted), the episodes its
-panels x runs x conditions hold (:func:`planned`). The measured side is the ``costs.jsonl`` that
-``transfer_v2`` appends as it works: wall seconds per trained head and chooser, and per evaluated
-(run, panel, condition) its episodes, wall seconds, CPU per kind of job and the share of attempts
-the sequence store served (:func:`measured`). :func:`project` multiplies the two; a class never
+panels x runs x conditions hold (:func:`planned`). The measured side is the rates an earlier run's
+``costs.jsonl`` holds (``transfer_ledger.measured``). :func:`project` multiplies the two; a class never
 measured takes the nominal head's rate (said in the output). :func:`status` says how far a run that
 goes on across sessions has come (``--status``): what each arm has evaluated, what is left at the
 out folder's own rates, and the contrasts whose arms are whole (the figures the finished run will
@@ -14,18 +12,11 @@ report: each contrast reads its two arms' episodes alone)."""
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from pathlib import Path
 
 from scenegen.experiment.transfer_config import TransferConfigV2
-
-CLASSES = ("head", "oracle", "head@shift", "oracle@shift")
-
-
-def condition_class(condition: str) -> str:
-    sight, _, shift = condition.partition("@")
-    return f"{sight}@shift" if shift else sight
+from scenegen.experiment.transfer_ledger import CLASSES, condition_class, measured
 
 
 def planned(config: TransferConfigV2) -> dict:
@@ -39,85 +30,6 @@ def planned(config: TransferConfigV2) -> dict:
             for condition, _ in conditions(config, run, panel):
                 episodes[condition_class(condition)] += n
     return {"runs": len(runs), "panels": sizes, "episodes": {c: episodes[c] for c in CLASSES}}
-
-
-def cost_rows(folders) -> list[dict]:
-    """Every row of the ``costs.jsonl`` of ``folders``."""
-    rows = []
-    for folder in folders:
-        path = Path(folder) / "costs.jsonl"
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no costs here; name the out folder of a version 2 run")
-        for line in path.read_text().splitlines():
-            try:
-                rows.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line torn by a kill (or being written): it counts nothing
-    return rows
-
-
-def _sums(rows: list[dict]) -> dict:
-    """The sums both :func:`totals` and :func:`measured` read: per training stage the parts and
-    their wall seconds (heads trained ``parallel`` at a time, transfer_v2.train_heads, count their
-    wall over that), per condition class the episodes, wall and CPU seconds, attempts and attempts
-    the sequence store served."""
-    sums: dict = {"training": {}, "episodes": {}}  # a stage and a class are both called "head"
-    for stage in ("head", "chooser"):
-        mine = [r for r in rows if r.get("stage") == stage]
-        sums["training"][stage] = {
-            "n": len(mine),
-            "wall_s": sum(r["wall_s"] / r.get("parallel", 1) for r in mine),
-        }
-    for kind in CLASSES:
-        mine = [r for r in rows if "condition" in r and condition_class(r["condition"]) == kind]
-        sums["episodes"][kind] = {
-            "n": sum(r["episodes"] for r in mine),
-            "wall_s": sum(r["wall_s"] for r in mine),
-            "cpu_s": sum(sum(r["cpu_seconds"].values()) for r in mine),
-            "attempts": sum(r["attempts"] for r in mine),
-            "shared": sum(r["shared"] for r in mine),
-        }
-    return sums
-
-
-def totals(folder) -> dict:
-    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours), and
-    per condition class the episodes evaluated, their wall and CPU hours, and the processors that
-    evaluated them (episodes each)."""
-    rows = cost_rows([folder])
-    sums = _sums(rows)
-    hours = lambda seconds: round(seconds / 3600, 2)  # noqa: E731
-    out: dict = {s: {"n": c["n"], "wall_h": hours(c["wall_s"])} for s, c in sums["training"].items()}
-    out["episodes"] = {
-        k: {"n": c["n"], "wall_h": hours(c["wall_s"]), "cpu_h": hours(c["cpu_s"])}
-        for k, c in sums["episodes"].items()
-    }
-    processors: Counter = Counter()
-    for r in rows:
-        if "condition" in r:
-            processors[r.get("cpu", "not recorded")] += r["episodes"]
-    out["processors"] = dict(processors)
-    return out
-
-
-def measured(folders) -> dict:
-    """Rates from the ``costs.jsonl`` of ``folders``: wall seconds per head (of the run's wall: a
-    head's own over the number trained at once) and per chooser trained,
-    and per class the wall and CPU seconds per episode and the share of attempts served."""
-    sums = _sums(cost_rows(folders))
-    out: dict = {"training": {}, "episodes": {}}
-    for stage, c in sums["training"].items():
-        if c["n"]:
-            out["training"][stage] = {"wall_s": round(c["wall_s"] / c["n"], 1), "n": c["n"]}
-    for kind, c in sums["episodes"].items():
-        if c["n"]:
-            out["episodes"][kind] = {
-                "wall_s": round(c["wall_s"] / c["n"], 3),
-                "cpu_s": round(c["cpu_s"] / c["n"], 3),
-                "served": round(c["shared"] / c["attempts"], 4) if c["attempts"] else None,
-                "n": c["n"],
-            }
-    return out
 
 
 def project(config: TransferConfigV2, rates: dict) -> dict:

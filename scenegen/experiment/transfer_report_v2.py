@@ -248,9 +248,9 @@ def scope_lines(metrics: dict) -> list[str]:
 
 
 def cost_lines(out: Path) -> list[str]:
-    """What the run spent (``transfer_cost.totals`` over its costs.jsonl): training, and evaluation
+    """What the run spent (``transfer_ledger.totals`` over its costs.jsonl): training, and evaluation
     per condition class, wall and CPU hours, and the processors that evaluated."""
-    from scenegen.experiment.transfer_cost import totals
+    from scenegen.experiment.transfer_ledger import totals
 
     spent = totals(out)
     lines = [

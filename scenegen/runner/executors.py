@@ -174,12 +174,17 @@ def start_pool(
 
 def stop_pool(pool: ProcessPoolExecutor) -> None:
     """End the pool's workers now. Items still running when the caller stops early (a batch that has
-    its n scenes) are not wanted: no waiting up to a proposal's time for them."""
-    workers_now = list((getattr(pool, "_processes", None) or {}).values())
-    pool.shutdown(wait=False, cancel_futures=True)
-    for process in workers_now:
+    its n scenes) are not wanted: no waiting up to a proposal's time for them.
+
+    The workers are ended before the pool is shut down, never after a ``shutdown(wait=False)``: that
+    empties the pool's process table while its manager thread still runs, and a worker retired by
+    ``max_tasks_per_child`` (--recycle-after) then makes the thread fail on it (CPython 3.11,
+    concurrent/futures/process.py ``_adjust_process_count``). Ended workers break the pool: the
+    manager thread fails the items left (nobody waits on them), ends any worker it had just started
+    in a retired one's place, and returns."""
+    for process in list((getattr(pool, "_processes", None) or {}).values()):
         process.terminate()
-    pool.shutdown(wait=True)
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _pool_worker_start(coordinator: int, initializer, initargs: tuple) -> None:

@@ -195,7 +195,7 @@ def test_heads_trained_two_at_a_time_are_the_bytes_of_heads_trained_alone(tiny_r
     """``workers: 2`` trains two heads at once (each at one thread, in its own process): the same
     weights as the tiny run's heads, trained one after another, and each head's wall in the costs
     with how many ran at once."""
-    from scenegen.experiment.transfer_cost import measured
+    from scenegen.experiment.transfer_ledger import measured
     from scenegen.experiment.transfer_v2 import weights_sha256
 
     config, metrics, base = tiny_run
@@ -298,7 +298,8 @@ def test_the_cost_of_a_configuration_is_projected_from_what_a_run_measured(tiny_
     """--estimate counts the configuration's work (runs; episodes per condition class) and multiplies
     it by the rates the run wrote to costs.jsonl; every trained part and evaluated file is there."""
     from scenegen.cli import main
-    from scenegen.experiment.transfer_cost import measured, planned, project
+    from scenegen.experiment.transfer_cost import planned, project
+    from scenegen.experiment.transfer_ledger import measured
 
     config, _, _ = tiny_run
     work = planned(config)
@@ -340,7 +341,8 @@ def test_the_status_of_a_run_counts_what_is_done_and_shows_only_whole_arms(tiny_
     import shutil
 
     from scenegen.cli import main
-    from scenegen.experiment.transfer_cost import measured, status
+    from scenegen.experiment.transfer_cost import status
+    from scenegen.experiment.transfer_ledger import measured
 
     config, metrics, _ = tiny_run
     whole = status(config)
