@@ -178,9 +178,11 @@ def test_a_chooser_is_trained_on_its_own_heads_masks(tiny_run):
 
 
 def test_a_stopped_and_continued_run_gives_the_same_outcome(tiny_run):
+    """On the whole run's trained parts (``parts``, as a fresh machine resumes on the committed ones;
+    that training gives the same bytes is the next test's): stopped after C_s0's evaluation, whose
+    noisy conditions are evaluated, and continued from there."""
     config, metrics, base = tiny_run
-    resumed = tiny_config(base / "resumed", base / "shared")
-    # stopped after C_s0, whose noisy conditions are evaluated; continued from there
+    resumed = tiny_config(base / "resumed", base / "shared").model_copy(update={"parts": Path(config.cache)})
     assert run_transfer_v2(resumed, progress=False, stop_after="evaluation:3") == {}
     again = run_transfer_v2(resumed, progress=False)
     # (the artifact's checksum covers costs.jsonl: CPU seconds differ between runs, episodes do not)
@@ -192,20 +194,24 @@ def test_a_stopped_and_continued_run_gives_the_same_outcome(tiny_run):
 
 
 def test_heads_trained_two_at_a_time_are_the_bytes_of_heads_trained_alone(tiny_run):
-    """``workers: 2`` trains two heads at once (each at one thread, in its own process): the same
-    weights as the tiny run's heads, trained one after another, and each head's wall in the costs
-    with how many ran at once."""
+    """``workers: 2`` trains two heads at once (each at one thread, in its own process; the seed 0
+    runs, A+'s and C's): the same weights as the tiny run's heads, trained one after another, and
+    each head's wall in the costs with how many ran at once."""
     from scenegen.experiment.transfer_ledger import measured
     from scenegen.experiment.transfer_v2 import weights_sha256
 
     config, metrics, base = tiny_run
-    two = tiny_config(base / "two_at_a_time", base / "shared").model_copy(update={"workers": 2})
+    seed_0 = config.training.model_copy(update={"seeds": (0,)})
+    two = tiny_config(base / "two_at_a_time", base / "shared")
+    two = two.model_copy(update={"workers": 2, "training": seed_0})
     assert run_transfer_v2(two, progress=False, stop_after="training") == {}
-    for run in metrics["runs"]:
+    runs = [r for r in metrics["runs"] if r["name"].endswith("_s0")]
+    assert [r["name"] for r in runs] == ["A+_s0", "C_s0"]
+    for run in runs:
         assert weights_sha256(Path(two.cache) / "heads" / run["head"]) == run["head_sha256"], run["name"]
     costs = [json.loads(x) for x in (Path(two.out) / "costs.jsonl").read_text().splitlines()]
     heads = [c for c in costs if c.get("stage") == "head"]
-    assert len(heads) == len(metrics["runs"]) and all(c["parallel"] == 2 for c in heads)
+    assert len(heads) == len(runs) and all(c["parallel"] == 2 for c in heads)
     per_run = measured([two.out])["training"]["head"]["wall_s"]  # a head's share of the run's wall
     assert per_run == pytest.approx(sum(c["wall_s"] / 2 for c in heads) / len(heads), abs=0.1)
 
