@@ -96,9 +96,9 @@ class PipelineConfig(BaseModel):
         diffusion = self.proposer.kind == "diffusion"
         if diffusion and self.condition.target not in self.proposer.known_categories():
             raise ValueError(
-                f"condition: the generator {self.proposer.checkpoint} does not know the category "
-                f"{self.condition.target!r}: use --proposer procedural (or targeted), or train one that "
-                "knows it (scenegen reference with these catalogs, then scenegen train; docs/assets.md)"
+                f"condition: generator {self.proposer.checkpoint} does not know the category "
+                f"{self.condition.target!r}: use --proposer procedural, or retrain it on these catalogs "
+                "(scenegen reference, scenegen train; docs/assets.md)"
             )
         return self
 
