@@ -4,6 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 # test processes (pytest-xdist, one test file per process at a time): CI's 2 cores
 TEST_WORKERS ?= 2
+PYTEST_FILES_AT_ONCE = $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 export MUJOCO_GL ?= egl
 
 .PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-audit bench-start sweep transfer clean
@@ -67,10 +68,10 @@ bench-user-assets: setup  ## user assets with the generator: known categories; a
 	$(BIN)/python benchmarks/user_assets.py --n 30 $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
 test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included; TEST_WORKERS=2 files at a time)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
+	$(PYTEST_FILES_AT_ONCE) --durations=25
 
 test-fast: setup install-exporters  ## everything but the slow end-to-end tests
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
+	$(PYTEST_FILES_AT_ONCE) -m "not slow"
 
 test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)
 	$(BIN)/python -m pytest -q --full -m full
