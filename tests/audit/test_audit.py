@@ -59,10 +59,11 @@ def project(tmp_path: Path) -> Path:
     (root / "pipelines").mkdir()
     shutil.copy(PROJECT_ROOT / "assets/reference/reference.parquet", root / "assets/reference")
     shutil.copy(PROJECT_ROOT / "pipelines/reference.yaml", root / "pipelines")
-    # the transfer outcome's artifact, which the audit rehashes (its location is relative)
-    shutil.copytree(PROJECT_ROOT / "assets/transfer/result", root / "assets/transfer/result")
-    checkpoint = Path(shutil.copytree(PROJECT_ROOT / "assets/generator", tmp_path / "generator"))
     manifest = project_manifest(read_manifest(PROJECT_ROOT / "data_manifest.yaml"))
+    # the transfer outcome's artifact, which the audit rehashes (its location is relative)
+    artifact = manifest.transfer.artifact
+    shutil.copytree(PROJECT_ROOT / artifact, root / artifact)
+    checkpoint = Path(shutil.copytree(PROJECT_ROOT / "assets/generator", tmp_path / "generator"))
     data = manifest.model_dump(mode="json", exclude_none=True)
     data["models"][0]["checkpoint"]["path"] = str(checkpoint)
     (root / "data_manifest.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
@@ -83,8 +84,11 @@ def test_the_clean_batch_and_project_pass(batch: Path, project: Path, capsys):
 
 def test_an_edited_transfer_artifact_fails_its_checksum(project: Path, capsys):
     """The committed transfer outcome names its artifact's sha256: one changed episode record fails."""
-    episodes = project.parent / "assets/transfer/result/episodes/rare_nominal.jsonl"
-    episodes.write_text(episodes.read_text().replace('"success": true', '"success": false', 1))
+    artifact = project.parent / read_manifest(project).transfer.artifact
+    episodes = sorted((artifact / "episodes").rglob("*.jsonl"))[0]
+    edited = episodes.read_text().replace('"success": true', '"success": false', 1)
+    assert edited != episodes.read_text()
+    episodes.write_text(edited)
     code, report = run_audit(project, capsys)
     assert code == TAMPERED
     assert [v["where"] for v in report["violations"]] == ["transfer"], report["violations"]
