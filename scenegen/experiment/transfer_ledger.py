@@ -59,16 +59,33 @@ def _sums(rows: list[dict]) -> dict:
 
 
 def totals(folder) -> dict:
-    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours), and
-    per condition class the episodes evaluated, their wall and CPU hours, and the processors that
-    evaluated them (episodes each)."""
+    """What a run spent, summed from its ``costs.jsonl``: heads and choosers trained (wall hours), per
+    condition class the episodes evaluated, their wall and CPU hours, CPU-s per episode and the share
+    of attempts the sequence store served, the whole run's wall and its evaluation's CPU hours, and
+    the processors that evaluated (episodes each)."""
     rows = cost_rows([folder])
     sums = _sums(rows)
     hours = lambda seconds: round(seconds / 3600, 2)  # noqa: E731
     out: dict = {s: {"n": c["n"], "wall_h": hours(c["wall_s"])} for s, c in sums["training"].items()}
     out["episodes"] = {
-        k: {"n": c["n"], "wall_h": hours(c["wall_s"]), "cpu_h": hours(c["cpu_s"])}
+        k: {
+            "n": c["n"],
+            "wall_h": hours(c["wall_s"]),
+            "cpu_h": hours(c["cpu_s"]),
+            "cpu_s_per_episode": round(c["cpu_s"] / c["n"], 2) if c["n"] else None,
+            "served": round(c["shared"] / c["attempts"], 3) if c["attempts"] else None,
+        }
         for k, c in sums["episodes"].items()
+    }
+    stages = [*sums["training"].values(), *sums["episodes"].values()]
+    attempts = sum(c["attempts"] for c in sums["episodes"].values())
+    out["all"] = {
+        "wall_h": hours(sum(c["wall_s"] for c in stages)),
+        "evaluation_cpu_h": hours(sum(c["cpu_s"] for c in sums["episodes"].values())),
+        "attempts": attempts,
+        "served": round(sum(c["shared"] for c in sums["episodes"].values()) / attempts, 3)
+        if attempts
+        else None,
     }
     processors: Counter = Counter()
     for r in rows:

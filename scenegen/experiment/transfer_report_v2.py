@@ -263,7 +263,18 @@ def cost_lines(out: Path) -> list[str]:
         f"- choosers: {spent['chooser']['n']} trained, {spent['chooser']['wall_h']} h of wall",
     ]
     for kind, c in spent["episodes"].items():
-        lines.append(f"- {c['n']:,} episodes {kind}: {c['wall_h']} h of wall, {c['cpu_h']} CPU-h")
+        if c["n"]:
+            lines.append(
+                f"- {c['n']:,} episodes {kind}: {c['wall_h']} h of wall, {c['cpu_h']} CPU-h "
+                f"({c['cpu_s_per_episode']} CPU-s each; the sequence store served {c['served']:.0%} "
+                "of the attempts)"
+            )
+    run = spent["all"]
+    if run["attempts"]:
+        lines.append(
+            f"- in all: {run['wall_h']} h of wall, the evaluation {run['evaluation_cpu_h']} CPU-h; the store "
+            f"served {run['served']:.0%} of {run['attempts']:,} attempts (the rest simulated)"
+        )
     lines += [f"- evaluated on {cpu}: {n} episodes" for cpu, n in spent["processors"].items()]
     return lines
 

@@ -117,6 +117,10 @@ def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run)
     spent = text.split("## What the run cost")[1]
     assert "- heads: 4 trained" in spent and "- choosers: 4 trained" in spent
     assert "- 12 episodes head: " in spent and "- 2 episodes oracle@shift: " in spent
+    rows = [json.loads(line) for line in (out / "costs.jsonl").read_text().splitlines()]
+    attempts = sum(r["attempts"] for r in rows if "condition" in r)
+    shared = sum(r["shared"] for r in rows if "condition" in r)
+    assert f"the store served {shared / attempts:.0%} of {attempts:,} attempts" in spent
     outcome = read_manifest(Path(config.manifest)).transfer
     assert outcome.status == "measured" and outcome.metrics["version"] == 2
     control = outcome.metrics["positive_control"]
