@@ -204,6 +204,7 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
         for group, by_name in contrasts.items():
             lines.append(f"| {group} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |")
         lines.append("")
+    lines += condition_contrast_lines(metrics, conditions)
     lines += ["## The heads, offline: first decision overlapping the target", ""]
     table = head_table(out, list(head.get("rates", {}).get("rare", {})))
     arms = sorted({a for row in table.values() for a in row})
@@ -221,6 +222,20 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
     if other is not None:
         lines += [""] + machine_lines(machine_effect(out, other))
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def condition_contrast_lines(metrics: dict, conditions: list[str]) -> list[str]:
+    """The contrasts on the rare panels pooled under every condition (through the heads, through true
+    masks, each under its shifts): one row per condition, the contrasts its arms allow."""
+    pooled = {c: metrics[c].get("contrasts", {}).get("rare", {}) for c in conditions}
+    names = list(dict.fromkeys(n for by_name in pooled.values() for n in by_name))
+    if not names:
+        return []
+    lines = ["## Contrasts per condition (rare panels pooled)", ""]
+    lines += ["| condition | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for condition, by_name in pooled.items():
+        lines.append(f"| {condition} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |")
+    return [*lines, ""]
 
 
 def scope_lines(metrics: dict) -> list[str]:

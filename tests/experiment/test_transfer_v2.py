@@ -113,6 +113,11 @@ def test_the_report_and_the_manifests_version_2_outcome_pass_the_audit(tiny_run)
     assert "\n- oracle: A+_s0, C_s0\n" in text and "\n- head@depth_noise: C_s0\n" in text
     toppled = metrics["head"]["contrasts"]["toppled"]["C - A+"]
     assert f"| toppled | {toppled['mean']:+.3f} [" in text.split("## Contrasts per panel")[1]
+    # every condition's pooled contrasts, "not run" where its arms do not allow one
+    by_condition = text.split("## Contrasts per condition")[1].split("\n## ")[0]
+    oracle = metrics["oracle"]["contrasts"]["rare"]["C - A+"]
+    assert f"| oracle | {oracle['mean']:+.3f} [" in by_condition
+    assert "| head@depth_noise | not run |" in by_condition
     # what it cost, summed from costs.jsonl: every part trained, every episode evaluated
     spent = text.split("## What the run cost")[1]
     assert "- heads: 4 trained" in spent and "- choosers: 4 trained" in spent
