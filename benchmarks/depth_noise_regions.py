@@ -62,11 +62,12 @@ def frame_rows(scene, observations: dict, cameras, sensor, point: str) -> list[d
             & (np.abs(world[..., 0]) <= regions.TABLE_HALF[0])
             & (np.abs(world[..., 1]) <= regions.TABLE_HALF[1])
         )
+        mended = filled(noisy)
         variants = {
             "exact": exact,
             "noisy": noisy,
-            "noisy, holes filled": filled(noisy),
-            "noisy, holes filled, median 5": median5(filled(noisy)),
+            "noisy, holes filled": mended,
+            "noisy, holes filled, median 5": median5(mended),
         }
         for name, depth in variants.items():
             keep, _ = regions.foreground(depth, robot, camera)
@@ -119,7 +120,8 @@ def main(per_panel: int) -> dict:
                 sum(r["target_in_region"] for r in mine) / sum(r["target"] for r in mine), 4
             ),
         }
-    return {"layouts": per_panel * len(RARE), "frames": len(rows) // 4, "pooled": pooled}
+    frames = sum(r["variant"] == "exact" for r in rows)
+    return {"layouts": per_panel * len(RARE), "frames": frames, "pooled": pooled}
 
 
 if __name__ == "__main__":

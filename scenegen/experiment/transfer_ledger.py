@@ -77,15 +77,14 @@ def totals(folder) -> dict:
         }
         for k, c in sums["episodes"].items()
     }
-    stages = [*sums["training"].values(), *sums["episodes"].values()]
-    attempts = sum(c["attempts"] for c in sums["episodes"].values())
+    evaluation = {
+        key: sum(c[key] for c in sums["episodes"].values()) for key in ("cpu_s", "attempts", "shared")
+    }
     out["all"] = {
-        "wall_h": hours(sum(c["wall_s"] for c in stages)),
-        "evaluation_cpu_h": hours(sum(c["cpu_s"] for c in sums["episodes"].values())),
-        "attempts": attempts,
-        "served": round(sum(c["shared"] for c in sums["episodes"].values()) / attempts, 3)
-        if attempts
-        else None,
+        "wall_h": hours(sum(c["wall_s"] for group in sums.values() for c in group.values())),
+        "evaluation_cpu_h": hours(evaluation["cpu_s"]),
+        "attempts": evaluation["attempts"],
+        "served": round(evaluation["shared"] / evaluation["attempts"], 3) if evaluation["attempts"] else None,
     }
     processors: Counter = Counter()
     for r in rows:

@@ -199,11 +199,11 @@ def report(metrics: dict, out: Path, sources: dict, other: Path | None = None) -
     contrasts = head.get("contrasts", {})
     names = list(contrasts.get("rare", {}))
     if names:
-        lines += ["## Contrasts per panel (through the heads)", ""]
-        lines += ["| panel | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
-        for group, by_name in contrasts.items():
-            lines.append(f"| {group} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |")
-        lines.append("")
+        lines += [
+            "## Contrasts per panel (through the heads)",
+            "",
+            *contrast_table("panel", contrasts, names),
+        ]
     lines += condition_contrast_lines(metrics, conditions)
     lines += ["## The heads, offline: first decision overlapping the target", ""]
     table = head_table(out, list(head.get("rates", {}).get("rare", {})))
@@ -231,10 +231,21 @@ def condition_contrast_lines(metrics: dict, conditions: list[str]) -> list[str]:
     names = list(dict.fromkeys(n for by_name in pooled.values() for n in by_name))
     if not names:
         return []
-    lines = ["## Contrasts per condition (rare panels pooled)", ""]
-    lines += ["| condition | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
-    for condition, by_name in pooled.items():
-        lines.append(f"| {condition} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |")
+    return [
+        "## Contrasts per condition (rare panels pooled)",
+        "",
+        *contrast_table("condition", pooled, names),
+    ]
+
+
+def contrast_table(first: str, rows: dict[str, dict], names: list[str]) -> list[str]:
+    """A markdown table: one row per key of ``rows`` (named by the column ``first``), the contrasts
+    ``names`` in columns ("not run" where a row has none), and a blank line."""
+    lines = [f"| {first} | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    lines += [
+        f"| {row} | " + " | ".join(_fmt(by_name.get(n)) for n in names) + " |"
+        for row, by_name in rows.items()
+    ]
     return [*lines, ""]
 
 
