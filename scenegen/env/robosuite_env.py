@@ -29,6 +29,7 @@ import numpy as np
 from scenegen.assets.catalog import Catalog, load_catalog, load_catalogs
 from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
 from scenegen.env.control import lean_control
+from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_named
 from scenegen.env.scenes import EnvScene, target_category
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
 from scenegen.sim import world
@@ -60,7 +61,9 @@ class SceneEnv(ManipulationEnv):
     arm with delta actions + gripper); ``cameras``: scene camera names to observe (default none: no
     rendering), at ``camera_size`` (width, height) pixels; ``lean_control``: the default
     controller's torques through :mod:`scenegen.env.control` (bit-identical, a fraction of the CPU;
-    False: robosuite's own path, what the benchmarks compare it with).
+    False: robosuite's own path, what the benchmarks compare it with); ``physics``: what the model
+    is compiled with, a name of ``env.physics.PHYSICS`` or a :class:`ControlPhysics` (solver,
+    timestep, collision geometry; the control rate stays 20 Hz).
     """
 
     def __init__(
@@ -74,7 +77,9 @@ class SceneEnv(ManipulationEnv):
         seed: int | None = None,
         render_each_step: bool = True,
         lean_control: bool = True,
+        physics: str | ControlPhysics = DEFAULT_PHYSICS,
     ):
+        self.physics = physics_named(physics)
         self.scene = scene
         self.lean_control = lean_control
         self._control = None  # the LeanControl of this reset's robot, or None: robosuite's path
@@ -157,10 +162,16 @@ class SceneEnv(ManipulationEnv):
             scene.cameras,
             base=self._robot_spec.copy(),
         )
+        self.physics.apply(spec, catalog, scene.objects)
         self.sim = MjSim(spec.compile())
         self._built_for = scene
         self.sim.forward()
         self.initialize_time(self.control_freq)
+
+    def initialize_time(self, control_freq):
+        # robosuite takes the physics step from its macros (2 ms); this model's is the physics'
+        super().initialize_time(control_freq)
+        self.model_timestep = self.physics.timestep
 
     def _reset_internal(self):
         robot = self.robots[0]
