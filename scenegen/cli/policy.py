@@ -64,8 +64,21 @@ def _add_label(sub) -> None:
         default="rgbd",
         help="what the planners see: camera frames (default) or the simulator's state (the ablation)",
     )
+    _add_physics(lab)
     lab.add_argument("--quiet", action="store_true", help="no progress bar")
     lab.set_defaults(run=label)
+
+
+def _add_physics(parser) -> None:
+    from scenegen.env.physics import DEFAULT_PHYSICS, PHYSICS
+
+    parser.add_argument(
+        "--physics",
+        choices=tuple(PHYSICS),
+        default=DEFAULT_PHYSICS,
+        help=f"what the primitives are simulated under (default {DEFAULT_PHYSICS}; docs/policy.md "
+        "'Cheaper physics'); stored rows say theirs, and rows of another physics are not reused",
+    )
 
 
 def _add_success_table(sub) -> None:
@@ -136,6 +149,7 @@ def _add_policy(sub) -> None:
         "simulator's instance masks, the ceiling",
     )
     ev.add_argument("--out", type=Path, required=True, help="folder for the episodes and summary.json")
+    _add_physics(ev)
     ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.set_defaults(run=policy_eval)
 
@@ -173,6 +187,7 @@ def label(args: argparse.Namespace) -> int:
                 backend=backend,
                 unique=args.unique_category,
                 until_solved=args.until_solved,
+                physics=args.physics,
             )
     except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))
@@ -257,7 +272,13 @@ def policy_eval(args: argparse.Namespace) -> int:
             scenes = outside_panels(scenes)
         scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
         summary = evaluate(
-            args.checkpoint, scenes[: args.n], args.out, args.labels, not args.quiet, args.retrieval
+            args.checkpoint,
+            scenes[: args.n],
+            args.out,
+            args.labels,
+            not args.quiet,
+            args.retrieval,
+            args.physics,
         )
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))

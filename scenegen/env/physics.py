@@ -131,15 +131,20 @@ def _table_through_hulls(spec: mujoco.MjSpec, catalog, objects, margin: float) -
     whose contype is bit 1 only and affinity none, so it meets the table and nothing else."""
     spec.geom(TABLE_GEOM).conaffinity |= _HULL_BIT
     table_body = _body_of(spec, TABLE_GEOM)
+    # every catalog asset's hull is declared, used or not, as build_world declares every mesh: scenes
+    # then share one mesh table, and a renderer its one upload (render/offscreen.py)
+    scales = [(asset, 1.0) for asset in catalog.assets]
+    scales += sorted({(catalog.get(o.asset), o.scale) for o in objects if o.scale != 1.0}, key=_by_name)
+    for asset, scale in scales:
+        points = _hull_points(tuple(str(asset.file(f)) for f in asset.parts.files)) * scale
+        spec.add_mesh(name=_hull_mesh(asset.name, scale), uservert=points.ravel().tolist())
     for obj in objects:
         asset = catalog.get(obj.asset)
-        points = _hull_points(tuple(str(asset.file(f)) for f in asset.parts.files)) * obj.scale
-        spec.add_mesh(name=f"{obj.name}_hull", uservert=points.ravel().tolist())
         holder = spec.body(obj.name).add_body(name=f"{obj.name}_hull_body")
         holder.add_geom(
             name=f"{obj.name}_hull",
             type=mujoco.mjtGeom.mjGEOM_MESH,
-            meshname=f"{obj.name}_hull",
+            meshname=_hull_mesh(asset.name, obj.scale),
             group=world.COLLISION_GROUP,
             contype=_HULL_BIT,
             conaffinity=0,
@@ -147,6 +152,14 @@ def _table_through_hulls(spec: mujoco.MjSpec, catalog, objects, margin: float) -
             **{**world.object_contact(asset.friction), "margin": margin},
         )
         spec.add_exclude(bodyname1=obj.name, bodyname2=table_body)
+
+
+def _by_name(pair) -> tuple[str, float]:
+    return pair[0].name, pair[1]
+
+
+def _hull_mesh(asset: str, scale: float) -> str:
+    return f"{asset}_hull" if scale == 1.0 else f"{asset}_s{scale:g}_hull"
 
 
 def _body_of(spec: mujoco.MjSpec, geom: str) -> str:
@@ -166,7 +179,14 @@ def _hull_points(files: tuple[str, ...]) -> np.ndarray:
 
 
 PHYSICS: dict[str, ControlPhysics] = {"exact": ControlPhysics()}
-DEFAULT_PHYSICS = "exact"
+DEFAULT_PHYSICS = "exact"  # what labelling and the closed loop simulate under unless told otherwise
+EXACT_KEY = PHYSICS["exact"].key()  # what a store's row made before the physics was a setting was made under
+
+
+def physics_mark(physics: ControlPhysics) -> str:
+    """What a stored sequence's or observation's key adds for ``physics``: nothing for ``exact`` (the
+    stores made before the physics was a setting keep serving it), else ``~`` and its key."""
+    return "" if physics.key() == EXACT_KEY else f"~{physics.key()}"
 
 
 def physics_named(name: str | ControlPhysics) -> ControlPhysics:

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_mark, physics_named
 from scenegen.env.scenes import EnvScene
 from scenegen.experiment.sequences import (
     NOMINAL,
@@ -51,12 +52,11 @@ from scenegen.schema.condition import RARE_TAGS
 
 
 # ------------------------------------------------------------------------------------------- workers
-def _env(scene: EnvScene):
+def _env(scene: EnvScene, physics: ControlPhysics):
     from scenegen.env.robosuite_env import worker_env
 
-    return worker_env(
-        scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
-    )
+    options = {"cameras": CAMERAS, "camera_size": CAMERA_SIZE, "render_each_step": False, "horizon": HORIZON}
+    return worker_env(scene, physics=physics, **options)
 
 
 def _init_worker() -> None:
@@ -100,10 +100,11 @@ def simulate(
     retrieval: Path | None = None,
     variant: Variant = NOMINAL,
     grid: PlanGrid | None = None,
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> list[dict]:
-    """Run ``prefix`` from ``scene``'s settled state in this process's environment, every decision
-    and re-observation seen through ``retrieval`` (None: the oracle) under ``variant``'s lighting,
-    its plans executed on ``grid``;
+    """Run ``prefix`` from ``scene``'s settled state in this process's environment under
+    ``physics``, every decision and re-observation seen through ``retrieval`` (None: the oracle)
+    under ``variant``'s lighting, its plans executed on ``grid``;
     one store row per step of it (the sequence up to and including that primitive), keyed by the
     plans executed. A re-observation inside a primitive keeps its state (``regrasp.qpos``) and its
     plan, so that another head's plan there can be compared without simulating."""
@@ -113,8 +114,9 @@ def simulate(
     from scenegen.manipulation.rollout import run_primitive
     from scenegen.perception.observation import observe as look
 
+    physics = physics_named(physics)
     perception = _perception(retrieval)
-    env = _env(scene)
+    env = _env(scene, physics)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     data = env.sim.data._data
     start = float(data.time)
@@ -149,7 +151,7 @@ def simulate(
             images=False,
             grid=grid,
         )
-        decision = decision_token(name, params)
+        decision = decision_token(name, params, physics)
         regrasp = again[0] if again else None
         tokens.append(decision + (f"+{regrasp['plan']}" if regrasp else ""))
         features = attempt_features(recorder.snapshot(), scene.target_id, k, outcome.other_touched)
@@ -182,6 +184,7 @@ def observe(
     retrieval: Path | None = None,
     point: str = "",
     grid: PlanGrid | None = None,
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> tuple[np.ndarray, dict]:
     """A decision point of ``scene`` (``point``: its path_key, which seeds a variant's sensor) at
     ``qpos`` (None: the settled state), as ``variant`` shows it, the plans on ``grid``:
@@ -194,14 +197,15 @@ def observe(
     from scenegen.policy.failures import _mask_pixels
     from scenegen.policy.train import policy_input
 
-    env = _env(scene)
+    physics = physics_named(physics)
+    env = _env(scene, physics)
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene))
     _state(env, qpos)
     variant.sense(env, point)
     obs, view = look(env, perception)
     plans = {
-        name: decision_token(name, None if view is None else make_plan(name, view, grid))
+        name: decision_token(name, None if view is None else make_plan(name, view, grid), physics)
         for name in PRIMITIVES
     }
     truth = scene.target_id if perception is None else None  # a head's observation holds its prediction
@@ -222,12 +226,14 @@ def regrasp_plan(
     retrieval: Path | None,
     point: str = "",
     grid: PlanGrid | None = None,
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> str:
     """The plan (on ``grid``) a re-observation at ``qpos`` makes through ``retrieval`` (None: the
     oracle); ``point``: the re-observation's (:func:`again_point`), which seeds a variant's sensor."""
     from scenegen.perception.observation import observe as look
 
-    env = _env(scene)
+    physics = physics_named(physics)
+    env = _env(scene, physics)
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     _state(env, qpos)
@@ -246,26 +252,27 @@ def _job(job: tuple) -> tuple:
     """One job for a worker; returns (kind, result, CPU seconds it took)."""
     import time
 
-    kind, scene, arg = job[0], job[1], job[2]
+    kind, scene, arg, physics = job
     began = time.process_time()
     if kind == "simulate":  # (prefix, retrieval, variant, grid)
-        result = simulate(scene, *arg)
+        result = simulate(scene, *arg, physics=physics)
     elif kind == "regrasp":  # (qpos, variant, key, retrieval, point, grid)
         qpos, variant, key, *rest = arg
-        result = (key, regrasp_plan(scene, qpos, variant, *rest))
+        result = (key, regrasp_plan(scene, qpos, variant, *rest, physics=physics))
     else:
         qpos, variant, inputs, key, *retrieval = arg
-        result = (key, *observe(scene, qpos, variant, inputs, *retrieval))
+        result = (key, *observe(scene, qpos, variant, inputs, *retrieval, physics=physics))
     return kind, result, time.process_time() - began
 
 
 class Workers:
     """Where sequences are simulated and observations rendered: this process (``workers`` <= 1) or a
     spawn pool of ``workers`` processes, each with its own environment, kept for the whole
-    evaluation."""
+    evaluation; ``physics`` (a name of ``env.physics.PHYSICS``): what they simulate under."""
 
-    def __init__(self, workers: int = 1):
+    def __init__(self, workers: int = 1, physics: str | ControlPhysics = DEFAULT_PHYSICS):
         self.workers = workers
+        self.physics = physics_named(physics)
         self.pool = None
 
     def __enter__(self) -> Workers:
@@ -281,8 +288,11 @@ class Workers:
             self.pool.shutdown(cancel_futures=True)
 
     def map(self, jobs: list[tuple]) -> Iterator[tuple]:
+        """``(kind, result, CPU seconds)`` of each ``(kind, scene, arguments)`` job, in order, under
+        this pool's physics."""
         if not jobs:
             return iter(())
+        jobs = [(*job, self.physics) for job in jobs]
         if self.pool is None:
             return map(_job, jobs)
         return self.pool.map(_job, jobs, chunksize=1)
@@ -379,7 +389,8 @@ def evaluate_policies(
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
     policy, scene id, tags, target category, the primitives chosen, success, failure labels.
-    ``workers``: an open :class:`Workers` (default: this process); ``retrieval``: the retrieval
+    ``workers``: an open :class:`Workers` (default: this process, under the default physics), whose
+    physics the episodes are simulated under; ``retrieval``: the retrieval
     head every decision and re-observation sees through (None: the oracle's masks); ``cost``: a
     :class:`Cost` to count the sharing and the CPU in; ``rules``: the perception rules' version that
     scores a head's decisions (default ``PERCEPTION_RULES``; observations are kept per version);
@@ -397,6 +408,7 @@ def evaluate_policies(
             )
     cost = cost if cost is not None else Cost()
     seen = sight(retrieval, variant, rules) + (f"|{grid.key()}" if grid is not None else "")
+    seen += physics_mark(workers.physics)  # a decision's plan tokens name the physics they run under
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
     for _ in range(ATTEMPTS):
         for r in runs:  # a policy that has tried every primitive it knows stops; so does the clock
@@ -436,10 +448,11 @@ def expert_rows(
     if not runs:
         return {}
     cost = Cost()
-    _observations(runs, lambda r: "rgbd", observations, NOMINAL, "oracle", None, workers, cost, progress)
+    seen = "oracle" + physics_mark(workers.physics)
+    _observations(runs, lambda r: "rgbd", observations, NOMINAL, seen, None, workers, cost, progress)
     for r in runs:
-        r.decisions.append(observations.meta(ObservationStore.key(r.sha, (), NOMINAL, "rgbd", "oracle")))
-    _resolve(runs, store, observations, NOMINAL, "oracle", None, workers, cost, progress)
+        r.decisions.append(observations.meta(ObservationStore.key(r.sha, (), NOMINAL, "rgbd", seen)))
+    _resolve(runs, store, observations, NOMINAL, seen, None, workers, cost, progress)
     experts: dict[str, list[dict]] = {}
     for r in runs:
         experts.setdefault(r.sha, []).append({"primitive": r.prefix[0], "success": bool(r.entry["success"])})

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenegen.env.physics import ControlPhysics, physics_mark
 from scenegen.env.scenes import EnvScene
 from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.store.batch import atomic_write, recover_jsonl
@@ -93,9 +94,11 @@ def plan_digest(plan: dict | None) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def decision_token(name: str, plan: dict | None) -> str:
-    """What an attempt executes as decided: the primitive, its version and its plan."""
-    return f"{name}@{PRIMITIVES[name].version}:{plan_digest(plan)}"
+def decision_token(name: str, plan: dict | None, physics: ControlPhysics | None = None) -> str:
+    """What an attempt executes as decided: the primitive, its version (and the physics it runs
+    under, ``physics_mark``: nothing for ``exact``) and its plan."""
+    mark = "" if physics is None else physics_mark(physics)
+    return f"{name}@{PRIMITIVES[name].version}{mark}:{plan_digest(plan)}"
 
 
 def path_key(sha: str, tokens: Sequence[str]) -> str:

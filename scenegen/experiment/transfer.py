@@ -57,11 +57,12 @@ def claim_out(out: Path, resolved: str) -> None:
     atomic_write(out / "config.yaml", resolved.encode())
 
 
-def expert_bits(rows: list[dict]) -> dict[str, dict[str, bool]]:
-    """Per scene (sha256), each primitive's success from the label rows of the current rules."""
+def expert_bits(rows: list[dict], physics: str = "exact") -> dict[str, dict[str, bool]]:
+    """Per scene (sha256), each primitive's success from the label rows of the current rules under
+    ``physics``."""
     labels: dict[str, dict[str, bool]] = {}
     for row in rows:
-        if current(row):
+        if current(row, physics=physics):
             labels.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
     return labels
 
@@ -283,6 +284,7 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
     # what decides the results (the worker count does not: the run's outputs do not depend on it)
     # (nor do an unset retrieval head or batches folder: a version 1 configuration resolves as it did)
     ignored = {"workers"} | {k for k in ("retrieval", "batches") if getattr(config, k) is None}
+    ignored |= config.unset_defaults()
     resolved = yaml.safe_dump(config.model_dump(mode="json", exclude=ignored), sort_keys=False)
     claim_out(out, resolved)
     timings: dict[str, float] = {}
@@ -308,15 +310,16 @@ def run_transfer(config: TransferConfig, progress: bool = True, stop_after: str 
         progress,
         True,
         config.reuse_labels,
+        physics=config.physics,
     )
 
-    labels = expert_bits(rows)
+    labels = expert_bits(rows, config.physics)
     if lap("labels"):
         return {}
     observations = ObservationStore(cache / "observations")
     all_runs = runs(config)
     policies = {}
-    with Workers(config.workers) as workers:
+    with Workers(config.workers, config.physics) as workers:
         for run in tqdm(all_runs, desc="training", disable=not progress):
             folder = train_run(
                 run, config, scenes, labels, observations, workers, cache / "policies" / run["name"]

@@ -87,6 +87,9 @@ class TransferConfig(_Strict):
     state_ablation: tuple[str, ...] = ("A+", "D")
     bootstrap: int = Field(2000, ge=100)
     workers: int = Field(2, ge=1)
+    # what labelling and the closed loop simulate under (env.physics.PHYSICS); versions 1 and 2 ran
+    # under ``exact``, and a configuration that leaves it there resolves as it did before the key
+    physics: str = "exact"
     label_store: Path = Path("assets/transfer/labels.parquet")
     reuse_labels: tuple[Path, ...] = (  # label files of the recovery-task issue: their scenes count as done
         Path("assets/policy/labels/per_tag40.parquet"),
@@ -109,6 +112,19 @@ class TransferConfig(_Strict):
         if unknown or not values:
             raise ValueError(f"{unknown or 'none'}: choose from {', '.join(allowed)}")
         return values
+
+    @field_validator("physics")
+    @classmethod
+    def _physics(cls, name):
+        from scenegen.env.physics import PHYSICS
+
+        if name not in PHYSICS:
+            raise ValueError(f"{name!r}: choose from {', '.join(PHYSICS)}")
+        return name
+
+    def unset_defaults(self) -> set[str]:
+        """Keys left out of the resolved configuration when they hold what runs before them did."""
+        return {"physics"} if self.physics == "exact" else set()
 
     @field_validator("alpha", "alpha_sweep")
     @classmethod

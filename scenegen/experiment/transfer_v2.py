@@ -178,7 +178,8 @@ def resolved_config(config: TransferConfigV2) -> str:
     """The configuration as its out folder's config.yaml holds it: what is run, not the workers or
     the manifest its outcome is also written to (naming one later does not make another run)."""
     return yaml.safe_dump(
-        config.model_dump(mode="json", exclude={"workers", "manifest", "parts"}), sort_keys=False
+        config.model_dump(mode="json", exclude={"workers", "manifest", "parts"} | config.unset_defaults()),
+        sort_keys=False,
     )
 
 
@@ -211,8 +212,11 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
     data = {arm: arm_mixture(arm, config.alpha, scenes, config.tags) for arm in config.arms}
     every = list({scene_sha256(s): s for arm in config.arms for s in data[arm][0]}.values())
     store, reuse = config.label_store, config.reuse_labels
-    rows, _ = label_scenes(every, store, config.primitives, "rgbd", config.workers, progress, True, reuse)
-    labels = expert_bits(rows)
+    physics = config.physics
+    rows, _ = label_scenes(
+        every, store, config.primitives, "rgbd", config.workers, progress, True, reuse, physics=physics
+    )
+    labels = expert_bits(rows, physics)
     if lap("labels"):
         return {}
     observations = ObservationStore(cache / "observations")
@@ -223,7 +227,7 @@ def run_transfer_v2(config: TransferConfigV2, progress: bool = True, stop_after:
         run["head"] = f"{run['name']}-{parts_digest(run, config, arm_scenes, recipe, head=True)}"
     train_heads(config, all_runs, data, out, progress)
     trained: dict[str, tuple] = {}
-    with Workers(config.workers) as workers:
+    with Workers(config.workers, config.physics) as workers:
         for run in tqdm(all_runs, desc="choosers", disable=not progress):
             head = config.parts_folder() / "heads" / run["head"]
             folder = config.parts_folder() / "policies" / run["parts"]
@@ -285,6 +289,8 @@ def parts_digest(run: dict, config: TransferConfigV2, data, recipe: MixtureRecip
             "primitives": list(config.primitives),
             "training": config.training.model_dump(mode="json"),
         }
+        if config.physics != "exact":  # its labels were simulated under another physics
+            decided["physics"] = config.physics
     return hashlib.sha256(json.dumps(decided, sort_keys=True).encode()).hexdigest()[:12]
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import torch
 
 from scenegen.env.episodes import EpisodeRecorder, write_episode
+from scenegen.env.physics import DEFAULT_PHYSICS
 from scenegen.env.scenes import EnvScene
 from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.manipulation.rollout import run_primitive
@@ -92,10 +93,12 @@ def evaluate(
     labels: Path | None = None,
     progress: bool = False,
     retrieval: Path | str | None = None,
+    physics: str = DEFAULT_PHYSICS,
 ) -> dict:
     """Run the policy on every feasible scene; write episodes under ``out`` and ``summary.json``.
     ``retrieval``: the retrieval head's checkpoint folder the policy sees through, or ``"oracle"`` /
-    None for the simulator's instance masks."""
+    None for the simulator's instance masks; ``physics``: what the episodes are simulated under (a
+    name of ``env.physics.PHYSICS``)."""
     from tqdm import tqdm
 
     from scenegen.env.robosuite_env import SceneEnv
@@ -124,7 +127,12 @@ def evaluate(
         raise ValueError("no feasible scene to evaluate (targets on the floor are out of reach)")
     out = Path(out)
     env = SceneEnv(
-        scenes[0], cameras=[CAMERA, "side"], camera_size=CAMERA_SIZE, render_each_step=False, horizon=6000
+        scenes[0],
+        cameras=[CAMERA, "side"],
+        camera_size=CAMERA_SIZE,
+        render_each_step=False,
+        horizon=6000,
+        physics=physics,
     )
     results, first_hits, first_overlaps = [], [], []
     try:
@@ -151,6 +159,7 @@ def evaluate(
         "success_rate": round(sum(s for s, _, _ in results) / len(results), 4),
         "failures": dict(Counter(f for s, f, _ in results if not s)),
         "out_of_time": sum(late for s, _, late in results if not s),
+        "physics": env.physics.key(),  # what the episodes were simulated under
     }
     if perception is not None:
         from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES

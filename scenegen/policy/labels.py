@@ -3,15 +3,17 @@ the simulator (``scenegen label SCENES --out labels.parquet``).
 
 One row per (scene, primitive): the scene (id, source, origin, target category, the rare tags it
 holds, ``scene_sha256``), the primitive and its version, the ``observation`` its planner used
-(``rgbd``, or the ``state`` ablation), ``success``, ``lift`` (m), ``duration``
-(simulated s) and ``failure`` (the failure event, ``RetrieveOutcome.failure``). Scenes whose target is
-on the floor are left out (infeasible for a table-top arm). Rows are in (scene, primitive) order and
-hold no wall-clock data, so the same scenes give the same file whatever the worker count.
+(``rgbd``, or the ``state`` ablation), the ``physics`` it was simulated under
+(``ControlPhysics.key()``; a row written before the physics was a setting has none and was made under
+``exact``), ``success``, ``lift`` (m), ``duration`` (simulated s) and ``failure`` (the failure event,
+``RetrieveOutcome.failure``). Scenes whose target is on the floor are left out (infeasible for a
+table-top arm). Rows are in (scene, primitive) order and hold no wall-clock data, so the same scenes
+give the same file whatever the worker count.
 
 Resumable and cached: every finished row is appended to ``<out>.rows.jsonl`` at once; a rerun (after a
 kill, or with more scenes or primitives) reuses every row whose (scene_sha256, primitive, version,
-observation) it already holds, from that log or from an existing ``out``, and runs only the rest.
-``out`` is written atomically at the end.
+observation, physics) it already holds, from that log or from an existing ``out``, and runs only the
+rest. ``out`` is written atomically at the end.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from scenegen.env.physics import DEFAULT_PHYSICS, EXACT_KEY, PHYSICS, ControlPhysics, physics_named
 from scenegen.env.scenes import EnvScene, load_scenes, scene_sha256, target_category, unique_category
 from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.manipulation.task import feasible, within_limit
@@ -42,14 +45,27 @@ class Job:
     primitive: str
     version: int
     observation: str = "rgbd"  # what the planner sees: camera frames, or the state ablation
+    physics: ControlPhysics = physics_named(DEFAULT_PHYSICS)  # what it is simulated under
 
     @property
-    def key(self) -> tuple[str, str, int, str]:
-        return (self.sha256, self.primitive, self.version, self.observation)
+    def key(self) -> tuple[str, str, int, str, str]:
+        return (self.sha256, self.primitive, self.version, self.observation, self.physics.key())
 
 
-def _key(row: dict) -> tuple[str, str, int, str]:
-    return (row["scene_sha256"], row["primitive"], row["primitive_version"], row.get("observation", "rgbd"))
+def row_physics(row: dict) -> str:
+    """The physics a label row was simulated under (its key; rows from before it was a setting:
+    ``exact``'s)."""
+    return row.get("physics") or EXACT_KEY
+
+
+def _key(row: dict) -> tuple[str, str, int, str, str]:
+    return (
+        row["scene_sha256"],
+        row["primitive"],
+        row["primitive_version"],
+        row.get("observation", "rgbd"),
+        row_physics(row),
+    )
 
 
 def _row(job: Job, outcome) -> dict:
@@ -65,6 +81,7 @@ def _row(job: Job, outcome) -> dict:
         "primitive": job.primitive,
         "primitive_version": job.version,
         "observation": job.observation,
+        "physics": job.physics.key(),
         "success": bool(outcome.success),
         "lift": round(float(outcome.lift), 6),
         "duration": round(float(outcome.time), 4),
@@ -87,23 +104,28 @@ def _run(job: Job) -> dict:
     from scenegen.env.robosuite_env import worker_env
     from scenegen.manipulation.rollout import run_primitive
 
-    env = worker_env(
-        job.scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
-    )
+    options = {"cameras": CAMERAS, "camera_size": CAMERA_SIZE, "render_each_step": False, "horizon": HORIZON}
+    env = worker_env(job.scene, physics=job.physics, **options)
     env.reset_to(job.scene)
     outcome, _ = run_primitive(env, job.primitive, observation_kind=job.observation)
     return _row(job, outcome)
 
 
 # -------------------------------------------------------------------------------------------- label
-def label_jobs(scenes: Sequence[EnvScene], primitives: Sequence[str], observation: str = "rgbd") -> list[Job]:
+def label_jobs(
+    scenes: Sequence[EnvScene],
+    primitives: Sequence[str],
+    observation: str = "rgbd",
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
+) -> list[Job]:
+    physics = physics_named(physics)
     unknown = [p for p in primitives if p not in PRIMITIVES]
     if unknown:
         raise LabelError(f"--primitives {unknown}: unknown; choose from {', '.join(PRIMITIVES)}")
     if observation not in KINDS:
         raise LabelError(f"--observation {observation}: choose one of {', '.join(KINDS)}")
     return [
-        Job(scene, scene_sha256(scene), name, PRIMITIVES[name].version, observation)
+        Job(scene, scene_sha256(scene), name, PRIMITIVES[name].version, observation, physics)
         for scene in scenes
         if feasible(scene)
         for name in primitives
@@ -117,27 +139,34 @@ def timed(row: dict) -> bool:
     return within_limit(bool(row["success"]), float(row["duration"]), row.get("success_time")) is not None
 
 
-def current(row: dict, observation: str = "rgbd") -> bool:
+def current(row: dict, observation: str = "rgbd", physics: str | ControlPhysics = DEFAULT_PHYSICS) -> bool:
     """Whether a label row answers for today's primitives: the primitive's current version, planned
     from ``observation`` (the state ablation's rows say what a planner with the simulator's state
-    would do, not what one with the cameras does), judged by today's time limit."""
+    would do, not what one with the cameras does), simulated under ``physics``, judged by today's
+    time limit."""
     primitive = PRIMITIVES.get(row["primitive"])
     return (
         primitive is not None
         and row.get("primitive_version") == primitive.version
         and row.get("observation", "rgbd") == observation
+        and row_physics(row) == physics_named(physics).key()
         and timed(row)
     )
 
 
-def current_rows(tables: Sequence[Sequence[dict]], observation: str = "rgbd") -> tuple[list[dict], int]:
+def current_rows(
+    tables: Sequence[Sequence[dict]],
+    observation: str = "rgbd",
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
+) -> tuple[list[dict], int]:
     """The rows of several label tables that answer for today's primitives seen through
-    ``observation``, each (scene, primitive) once; and how many rows were left out as stale."""
+    ``observation`` under ``physics``, each (scene, primitive) once; and how many rows were left out
+    as stale."""
     rows: dict[tuple, dict] = {}
     stale = 0
     for table in tables:
         for row in table:
-            if current(row, observation):
+            if current(row, observation, physics):
                 rows.setdefault((row["scene_sha256"], row["primitive"]), row)
             else:
                 stale += 1
@@ -178,7 +207,9 @@ def _cached(out: Path, log: Path) -> dict[tuple, dict]:
 
         rows += pq.read_table(out).to_pylist()
     rows += recover_jsonl(log)
-    return {_key(r): r for r in rows if timed(r)}  # a row the time limit cannot judge is relabelled
+    # a row the time limit cannot judge is relabelled; every row says its physics (a Parquet table
+    # takes its columns from its first row)
+    return {_key(r): {**r, "physics": row_physics(r)} for r in rows if timed(r)}
 
 
 def label(
@@ -196,6 +227,7 @@ def label(
     backend=None,
     unique: bool = False,
     until_solved: bool = False,
+    physics: str = DEFAULT_PHYSICS,
 ) -> dict:
     """Label the scenes of ``source`` (a batch, a scene folder or a reference Parquet table) with
     every primitive (or those named); returns counts (rows, run now, reused from the cache).
@@ -208,7 +240,8 @@ def label(
     targets are out of reach, never labelled).
     ``until_solved``: stop each scene at its first success (``label_until_solved``; ``primitives``,
     if given, is the order), enough to say which scenes are solvable. ``backend``: where the
-    ``workers`` run (scenegen.runner.executors.Backend; default a local pool)."""
+    ``workers`` run (scenegen.runner.executors.Backend; default a local pool). ``physics``: a name of
+    ``env.physics.PHYSICS``, what every primitive is simulated under."""
     try:
         scenes = load_scenes(source, split)
     except (OSError, ValueError) as exc:
@@ -229,14 +262,20 @@ def label(
         scenes = off_panels(scenes)
     scenes = [s for s in scenes if feasible(s)]
     scenes = scenes[:limit] if limit is not None else scenes
+    if physics not in PHYSICS:
+        raise LabelError(f"--physics {physics}: unknown; choose from {', '.join(PHYSICS)}")
     if until_solved:
         if observation != "rgbd":
             raise LabelError(
                 "--until-solved settles solvability with the cameras' planners: drop --observation"
             )
-        rows, ran = label_until_solved(scenes, out, primitives or SOLVE_ORDER, workers, progress, backend)
+        rows, ran = label_until_solved(
+            scenes, out, primitives or SOLVE_ORDER, workers, progress, backend, physics=physics
+        )
     else:
-        rows, ran = label_scenes(scenes, out, primitives, observation, workers, progress, backend=backend)
+        rows, ran = label_scenes(
+            scenes, out, primitives, observation, workers, progress, backend=backend, physics=physics
+        )
     return {"rows": len(rows), "ran": ran, "reused": len(rows) - ran, "out": str(out)}
 
 
@@ -250,11 +289,13 @@ def label_scenes(
     keep: bool = False,
     reuse: Sequence[Path] = (),
     backend=None,
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> tuple[list[dict], int]:
-    """Label ``scenes`` (feasible ones) with every primitive (or those named) into ``out``; returns
-    their rows and how many were run now. ``keep``: ``out`` is a store that keeps every row it held
-    (a cache shared by several calls); otherwise it holds exactly these scenes' rows. ``reuse``: other
-    label files whose rows (same scene content, primitive, version and observation) count as done."""
+    """Label ``scenes`` (feasible ones) with every primitive (or those named) into ``out`` under
+    ``physics``; returns their rows and how many were run now. ``keep``: ``out`` is a store that
+    keeps every row it held (a cache shared by several calls); otherwise it holds exactly these
+    scenes' rows. ``reuse``: other label files whose rows (same scene content, primitive, version,
+    observation and physics) count as done."""
     import pyarrow as pa
     import pyarrow.parquet as pq
     from tqdm import tqdm
@@ -262,7 +303,9 @@ def label_scenes(
     from scenegen.store.batch import atomic_write
 
     out = Path(out)
-    jobs = label_jobs([s for s in scenes if feasible(s)], list(primitives or PRIMITIVES), observation)
+    jobs = label_jobs(
+        [s for s in scenes if feasible(s)], list(primitives or PRIMITIVES), observation, physics
+    )
     log = out.with_name(out.name + ".rows.jsonl")
     out.parent.mkdir(parents=True, exist_ok=True)
     cache = _cached(out, log)
@@ -276,7 +319,7 @@ def label_scenes(
             sink.write(json.dumps(row, sort_keys=True) + "\n")
             sink.flush()
             cache[_key(row)] = row
-    rows = [{**cache[job.key], "observation": job.observation} for job in jobs]
+    rows = [{**cache[job.key], "observation": job.observation, "physics": job.physics.key()} for job in jobs]
     stored = [cache[k] for k in sorted(cache)] if keep else rows
     # as the log holds them (sorted keys, JSON types): a run resumed from the log writes the same bytes
     stored = [json.loads(json.dumps(row, sort_keys=True)) for row in stored]
@@ -302,17 +345,20 @@ def label_until_solved(
     progress: bool = True,
     backend=None,
     reuse: Sequence[Path] = (),
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> tuple[list[dict], int]:
-    """Whether each scene is solvable, at the least labelling: one round per primitive of ``order``
-    over the scenes no row of ``out`` shows solved yet, so a scene stops at its first success
-    (``solvable_scenes`` reads the partial rows). ``out`` keeps every row it held (rounds add to it).
-    ``reuse``: other label files whose rows count as done (``label_scenes``). Returns the rows of
-    the rounds these scenes took, and how many were run now."""
+    """Whether each scene is solvable (under ``physics``), at the least labelling: one round per
+    primitive of ``order`` over the scenes no row of ``out`` shows solved yet, so a scene stops at its
+    first success (``solvable_scenes`` reads the partial rows). ``out`` keeps every row it held
+    (rounds add to it). ``reuse``: other label files whose rows count as done (``label_scenes``).
+    Returns the rows of the rounds these scenes took, and how many were run now."""
     unknown = sorted(set(PRIMITIVES) - set(order))
     if unknown:
         raise LabelError(f"--primitives: order all of {', '.join(PRIMITIVES)} to settle solvability")
     out = Path(out)
-    solved = {sha for sha, ok in solvable_scenes(stored_rows(out)).items() if ok}  # known at the start
+    solved = {
+        sha for sha, ok in solvable_scenes(stored_rows(out), physics).items() if ok
+    }  # known at the start
     remaining = [s for s in scenes if feasible(s) and scene_sha256(s) not in solved]
     rows: list[dict] = []
     ran = 0
@@ -320,7 +366,7 @@ def label_until_solved(
         if not remaining:
             break
         got, n = label_scenes(
-            remaining, out, [primitive], "rgbd", workers, progress, keep=True, reuse=reuse, backend=backend
+            remaining, out, [primitive], "rgbd", workers, progress, True, reuse, backend, physics
         )
         rows += got
         ran += n
@@ -346,11 +392,12 @@ def _execute(jobs: list[Job], workers: int, backend=None) -> Iterator[dict]:
     yield from ordered_map(_run, jobs, workers, _init_worker, (), backend)
 
 
-def solvable_scenes(label_rows) -> dict[str, bool]:
-    """Per scene sha256 whose answer the current rows settle: True once one primitive succeeds (the
-    others may be unlabelled, as ``label_until_solved`` leaves them), False when every primitive is
-    labelled and none succeeds; a scene with neither is left out (not yet known)."""
-    rows, _ = current_rows([list(label_rows)])
+def solvable_scenes(label_rows, physics: str | ControlPhysics = DEFAULT_PHYSICS) -> dict[str, bool]:
+    """Per scene sha256 whose answer the current rows (under ``physics``) settle: True once one
+    primitive succeeds (the others may be unlabelled, as ``label_until_solved`` leaves them), False
+    when every primitive is labelled and none succeeds; a scene with neither is left out (not yet
+    known)."""
+    rows, _ = current_rows([list(label_rows)], physics=physics)
     labelled: dict[str, dict[str, bool]] = {}
     for row in rows:
         labelled.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])

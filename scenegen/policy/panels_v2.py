@@ -41,6 +41,9 @@ from scenegen.policy.panels import PANEL_TAGS, PANELS_V2_FILE, REFERENCE, SEED, 
 PANELS_V2 = PANELS_V2_FILE.parent
 LABELS_V2 = PANELS_V2 / "heldout_labels.parquet"
 NEW_SEED = 1
+# the physics the panels' solvability was labelled under (assets/panels/v2/heldout_labels.parquet):
+# transfer version 2's; the panels are redrawn from those labels, whatever the default physics is now
+PANELS_PHYSICS = "exact"
 NEW_LAYOUTS = PANELS_V2 / "reference_seed1.parquet"  # scenegen reference --n 5000 --seed 1
 SOURCES = ((REFERENCE, "heldout"), (NEW_LAYOUTS, None))
 TEST_PER_TAG, VALIDATION_PER_TAG, MIN_PER_TAG = 25, 15, 15
@@ -139,7 +142,7 @@ def fill_pools(
             break
         if progress:
             print(f"panels: labelling {len(wanted)} layouts until solved", flush=True)
-        label_until_solved(wanted, labels, workers=workers, progress=progress)
+        label_until_solved(wanted, labels, workers=workers, progress=progress, physics=PANELS_PHYSICS)
         solvable = known_solvable(labels)
     return solvable
 
@@ -148,7 +151,7 @@ def known_solvable(labels: Path) -> dict[str, bool]:
     """What a label store (its Parquet file and its row log) settles: scene sha256 -> solvable."""
     from scenegen.policy.labels import solvable_scenes, stored_rows
 
-    return solvable_scenes(stored_rows(labels))
+    return solvable_scenes(stored_rows(labels), PANELS_PHYSICS)
 
 
 def choose_panels_v2(layouts: list[EnvScene], solvable: dict[str, bool], seed: int = SEED) -> dict:

@@ -221,3 +221,36 @@ def test_labelling_until_solved_stops_each_scene_at_its_first_success(tmp_path: 
     stored = solvable_scenes(pq.read_table(store).to_pylist())  # the store also keeps the reused rows
     assert {k: stored[v] for k, v in sha.items()} == {"first": True, "second": True, "none": False}
     assert solvable_scenes(rows) == {sha["first"]: True, sha["second"]: True, sha["none"]: False}
+
+
+def test_rows_say_their_physics_and_another_physics_is_labelled_apart(
+    labelled: Path, demo_batch: Path, tmp_path: Path, monkeypatch
+):
+    from scenegen.env.physics import EXACT_KEY, PHYSICS
+    from scenegen.policy.labels import current
+
+    coarse = PHYSICS["exact"].with_changes("coarse", timestep=0.005)
+    monkeypatch.setitem(PHYSICS, "coarse", coarse)
+    out = tmp_path / "labels.parquet"
+    shutil.copy(labelled, out)  # the exact rows do not answer for another physics
+    assert {r["physics"] for r in pq.read_table(out).to_pylist()} == {EXACT_KEY}
+    stats = label(demo_batch, out, ["top_grasp"], limit=1, physics="coarse", progress=False)
+    assert (stats["ran"], stats["reused"]) == (1, 0)
+    (row,) = pq.read_table(out).to_pylist()
+    assert row["physics"] == coarse.key() and current(row, physics="coarse") and not current(row)
+    # a row written before the physics was a setting was made under exact
+    old = {k: v for k, v in pq.read_table(labelled).to_pylist()[0].items() if k != "physics"}
+    assert current(old) and not current(old, physics="coarse")
+    with pytest.raises(LabelError, match="--physics fast: unknown; choose from exact"):
+        label(demo_batch, out, ["top_grasp"], limit=1, physics="fast", progress=False)
+
+
+def test_a_decision_token_names_a_physics_other_than_exact():
+    from scenegen.env.physics import PHYSICS
+    from scenegen.experiment.sequences import decision_token
+
+    plan = {"position": [0.1, 0.2, 0.9]}
+    exact = decision_token("top_grasp", plan, PHYSICS["exact"])
+    assert exact == decision_token("top_grasp", plan)  # what stores made before the setting hold
+    coarse = PHYSICS["exact"].with_changes("coarse", timestep=0.005)
+    assert decision_token("top_grasp", plan, coarse) == exact.replace(":", f"~{coarse.key()}:", 1)
