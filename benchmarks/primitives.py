@@ -2,7 +2,7 @@
 the same run, outcomes compared bit for bit.
 
     .venv/bin/python benchmarks/primitives.py [--scenes 4] [--episodes 12] [--repeats 2]
-        [--baseline 9430f21 | --no-baseline]
+        [--baseline c20c117 | --no-baseline] [--physics NAME]
 
 Two measurements, each in a fresh process per code version (the baseline's files extracted with
 `git archive` and run with this virtual environment), alternated ``--repeats`` times:
@@ -15,9 +15,13 @@ Two measurements, each in a fresh process per code version (the baseline's files
   the first ``--episodes`` layouts of the version 2 validation panels, fresh sequence and
   observation stores (``evaluate_policies`` in this process), CPU-seconds per episode, and every
   episode record and every stored sequence row (its ``qpos`` included).
-Outcomes must be equal between the versions (the script says so, and exits 1 if they differ). The
-ratio is this checkout's CPU over the baseline's, medians over the repeats. Prints a table and saves
-JSON.
+This checkout runs under ``--physics`` (default: the control loop's default physics, env/physics.py).
+Under ``exact``, outcomes must be equal between the versions (the script says so, and exits 1 if they
+differ); under another physics they are expected to move, and the script counts the attempts and
+episodes whose outcome differs (whether they move beyond their noise is benchmarks/physics_screen.py's
+question, on hundreds of layouts). The ratio is this checkout's CPU over the baseline's, medians over
+the repeats. Prints a table and saves JSON. (Issue 44 measured against 9430f21, issue 61 against
+c20c117.)
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from baseline import ROOT, add_child_arguments, baseline_tree, child_main, run_c
 # ------------------------------------------------------------------------------ in the child
 
 
-def measure_label(scenes: int) -> dict:
+def measure_label(scenes: int, physics: str | None = None) -> dict:
     import numpy as np
 
     import scenegen.manipulation.rollout as rollout
@@ -49,9 +53,10 @@ def measure_label(scenes: int) -> dict:
 
     rows = [r for r in load_rows(ROOT / "assets/reference/reference.parquet", "train") if r["tag_nominal"]]
     layouts = [reference_scene(r) for r in rows[:scenes]]
-    env = SceneEnv(
-        layouts[0], cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False, horizon=HORIZON
-    )
+    options = {"cameras": CAMERAS, "camera_size": CAMERA_SIZE, "render_each_step": False, "horizon": HORIZON}
+    if physics is not None:  # this checkout's; a baseline from before the setting knows none
+        options["physics"] = physics
+    env = SceneEnv(layouts[0], **options)
     seen: list[list[float]] = []
     observe = rollout.observe
 
@@ -87,8 +92,8 @@ def measure_label(scenes: int) -> dict:
     return {"cpu_per_scene": cpu, "steps_per_scene": steps, "outcomes": outcomes}
 
 
-def measure_episode(episodes: int) -> dict:
-    from scenegen.experiment.closed_loop import Cost, evaluate_policies
+def measure_episode(episodes: int, physics: str | None = None) -> dict:
+    from scenegen.experiment.closed_loop import Cost, Workers, evaluate_policies
     from scenegen.experiment.sequences import ObservationStore, PathStore
     from scenegen.paths import ASSETS_DIR
     from scenegen.perception.retrieval import DEFAULT_HEAD
@@ -109,9 +114,16 @@ def measure_episode(episodes: int) -> dict:
         )
         cost = Cost()
         c0 = time.process_time()
-        records = evaluate_policies(
-            {"policy": policy}, layouts, store, observations, retrieval=DEFAULT_HEAD, cost=cost
-        )
+        with Workers(1, physics) if physics is not None else Workers(1) as workers:
+            records = evaluate_policies(
+                {"policy": policy},
+                layouts,
+                store,
+                observations,
+                retrieval=DEFAULT_HEAD,
+                cost=cost,
+                workers=workers,
+            )
         cpu = time.process_time() - c0
         rows = [json.loads(line) for line in (Path(tmp) / "paths.jsonl").read_text().splitlines()]
     return {
@@ -123,11 +135,24 @@ def measure_episode(episodes: int) -> dict:
 
 def measure(spec: dict) -> dict:
     if spec["kind"] == "label":
-        return measure_label(spec["scenes"])
-    return measure_episode(spec["episodes"])
+        return measure_label(spec["scenes"], spec.get("physics"))
+    return measure_episode(spec["episodes"], spec.get("physics"))
 
 
 # ------------------------------------------------------------------------------ the driver
+def moved(kind: str, mine, theirs) -> str:
+    """``identical``, or how many successes differ: of the attempts (label) or the episodes."""
+    if mine == theirs:
+        return "identical"
+    if kind == "label":
+        pairs = [
+            (m["outcome"]["success"], t["outcome"]["success"]) for m, t in zip(mine, theirs, strict=True)
+        ]
+    else:
+        pairs = [
+            (m["success"], t["success"]) for m, t in zip(mine["records"], theirs["records"], strict=True)
+        ]
+    return f"{sum(a != b for a, b in pairs)} of {len(pairs)} successes differ"
 
 
 def main() -> None:
@@ -136,7 +161,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=12, help="closed-loop episodes (default 12; 0: none)")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each version, alternated (default 2)")
     parser.add_argument(
-        "--baseline", default="9430f21", help="commit whose code is the baseline (default 9430f21)"
+        "--baseline", default="c20c117", help="commit whose code is the baseline (default c20c117)"
+    )
+    parser.add_argument(
+        "--physics", default=None, help="the physics this checkout runs under (default: its default physics)"
     )
     parser.add_argument("--no-baseline", dest="baseline", action="store_const", const=None)
     parser.add_argument("--json", type=Path, default=Path("benchmarks/results/primitives.json"))
@@ -144,6 +172,11 @@ def main() -> None:
     args = parser.parse_args()
     if child_main(args, measure):
         return
+    sys.path.insert(0, str(ROOT))
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
+
+    physics = args.physics or DEFAULT_PHYSICS
+    exact = physics_named(physics).key() == physics_named("exact").key()
 
     kinds = [{"kind": "label", "scenes": args.scenes}]
     if args.episodes > 0:
@@ -157,8 +190,9 @@ def main() -> None:
             for spec in kinds:
                 for version in code if repeat % 2 == 0 else reversed(list(code)):
                     print(f"{spec['kind']} {version} (run {repeat + 1}) ...", flush=True)
+                    child = spec if version == "baseline" else {**spec, "physics": physics}
                     results[spec["kind"]].setdefault(version, []).append(
-                        run_child(__file__, spec, code[version])[0]
+                        run_child(__file__, child, code[version])[0]
                     )
 
     summary, differ = {}, []
@@ -180,20 +214,22 @@ def main() -> None:
                 differ.append(f"{kind}: {version}'s repeats differ among themselves")
         if "baseline" in row:
             row["ratio"] = round(row["current"]["cpu_s"] / row["baseline"]["cpu_s"], 3)
-            same = by_version["current"][0]["outcomes"] == by_version["baseline"][0]["outcomes"]
-            row["outcomes_identical"] = same
-            if not same:
+            mine, theirs = by_version["current"][0]["outcomes"], by_version["baseline"][0]["outcomes"]
+            row["outcomes_identical"] = mine == theirs
+            row["outcomes_moved"] = moved(kind, mine, theirs)
+            if mine != theirs and exact:
                 differ.append(f"{kind}: outcomes differ between the baseline and this checkout")
         summary[kind] = row
 
     unit = {"label": "CPU-s per labelled scene", "episode": "CPU-s per closed-loop episode"}
-    print(f"\n| measure | baseline ({args.baseline}) | this checkout | ratio | outcomes identical |")
+    print(f"\nthis checkout under physics {physics_named(physics).key()}")
+    print(f"| measure | baseline ({args.baseline}) | this checkout | ratio | outcomes |")
     print("|---|---|---|---|---|")
     for kind, row in summary.items():
         base = row.get("baseline", {}).get("cpu_s", "-")
         print(
             f"| {unit[kind]} | {base} | {row['current']['cpu_s']} | {row.get('ratio', '-')} "
-            f"| {row.get('outcomes_identical', '-')} |"
+            f"| {row.get('outcomes_moved', '-')} |"
         )
     payload = {
         "machine": {
@@ -202,6 +238,7 @@ def main() -> None:
             "processor": platform.processor(),
         },
         "baseline": args.baseline,
+        "physics": physics_named(physics).key(),
         "scenes": args.scenes,
         "episodes": args.episodes,
         "repeats": args.repeats,
