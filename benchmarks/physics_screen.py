@@ -266,6 +266,7 @@ def main() -> None:
         help="run exact on the first N layouts only (its outcomes are the stored labels'; default all)",
     )
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--no-run", action="store_true", help="report what the log holds, run nothing")
     parser.add_argument("--out", type=Path, default=ROOT / "runs/physics_screen")
     args = parser.parse_args()
     settings = [setting(s) for s in args.settings.split(",") if s]
@@ -285,7 +286,7 @@ def main() -> None:
         (p.model_dump(), row)
         for i, (row, scene_id) in enumerate(zip(rows, ids, strict=True))
         for p in settings
-        if (p.key(), scene_id) not in done and (p.name != "exact" or i < exact_n)
+        if (p.key(), scene_id) not in done and (p.name != "exact" or i < exact_n) and not args.no_run
     ]
     with open(log, "a") as sink:
         found_rows = ordered_map(label_scene, jobs, args.workers, init_worker)
