@@ -413,3 +413,29 @@ def test_a_contrast_of_whole_arms_does_not_depend_on_the_arms_beside_it(tiny_run
             assert big[condition]["contrasts"][group]["C - A+"] == contrasts["C - A+"]
         for group, rates in small[condition]["rates"].items():
             assert {a: big[condition]["rates"][group][a] for a in rates} == rates
+
+
+def test_version_2_keeps_its_physics_and_resolves_as_it_ran(monkeypatch):
+    """The declared configuration runs under ``exact`` and resolves to the committed artifact's
+    config.yaml byte for byte (the physics key added since is left out where it holds exact);
+    another physics is part of what the run is, and of what decides its choosers."""
+    from scenegen.env.mixture import MixtureRecipe
+    from scenegen.env.physics import PHYSICS
+    from scenegen.experiment.transfer_v2 import parts_digest, resolved_config
+
+    declared = load_transfer_config(PROJECT_ROOT / "pipelines" / "transfer.yaml")
+    committed = PROJECT_ROOT / "assets" / "transfer" / "v2" / "result" / "config.yaml"
+    assert declared.physics == "exact"
+    assert resolved_config(declared) == committed.read_text()
+    monkeypatch.setitem(PHYSICS, "coarse", PHYSICS["exact"].with_changes("coarse", timestep=0.005))
+    coarse = declared.model_copy(update={"physics": "coarse"})
+    assert "physics: coarse" in resolved_config(coarse)
+    run = {"seed": 0, "alpha": 1.0}
+    scenes = [reference_scene(r) for r in load_rows(REFERENCE, "train")[:3]]
+    recipe = MixtureRecipe.seed_loss({"A": 3}, {}, 0.0)
+    assert parts_digest(run, declared, scenes, recipe) != parts_digest(run, coarse, scenes, recipe)
+    assert parts_digest(run, declared, scenes, recipe, head=True) == parts_digest(
+        run, coarse, scenes, recipe, head=True
+    )  # a head sees frames: the physics does not decide it
+    with pytest.raises(TransferConfigError, match="physics"):
+        load_transfer_config(PROJECT_ROOT / "pipelines" / "transfer.yaml", {"physics": "fast"})
