@@ -70,14 +70,13 @@ def _add_label(sub) -> None:
 
 
 def _add_physics(parser) -> None:
-    from scenegen.env.physics import DEFAULT_PHYSICS, PHYSICS
-
+    # names only: importing the settings would load MuJoCo before the CLI has checked MUJOCO_GL
     parser.add_argument(
         "--physics",
-        choices=tuple(PHYSICS),
-        default=DEFAULT_PHYSICS,
-        help=f"what the primitives are simulated under (default {DEFAULT_PHYSICS}; docs/policy.md "
-        "'Cheaper physics'); stored rows say theirs, and rows of another physics are not reused",
+        metavar="NAME",
+        help="what the primitives are simulated under: a name of the control loop's physics settings "
+        "(default: its default, exact; docs/env.md 'The physics'); stored rows say theirs, and rows "
+        "of another physics are not reused",
     )
 
 
@@ -187,7 +186,7 @@ def label(args: argparse.Namespace) -> int:
                 backend=backend,
                 unique=args.unique_category,
                 until_solved=args.until_solved,
-                physics=args.physics,
+                **({"physics": args.physics} if args.physics else {}),
             )
     except (LabelError, OSError, BackendError) as exc:
         return fail(first_line(exc))
@@ -278,7 +277,7 @@ def policy_eval(args: argparse.Namespace) -> int:
             args.labels,
             not args.quiet,
             args.retrieval,
-            args.physics,
+            **({"physics": args.physics} if args.physics else {}),
         )
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
