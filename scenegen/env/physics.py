@@ -125,16 +125,18 @@ def _table_through_hulls(spec: mujoco.MjSpec, catalog, objects, margin: float) -
 
     Contact filtering is MuJoCo's: two geoms collide when (contype1 & conaffinity2) or (contype2 &
     conaffinity1). The table keeps bit 0 in both (robot, furniture and floor as before) and takes
-    bit 1 in its affinity; an object's parts stop meeting the table by an
-    explicit exclusion of the pair (object body, table body), which would exclude a hull on the same
-    body too: so the hull sits on a child body of the object (rigidly attached, no joint, no mass),
-    whose contype is bit 1 only and affinity none, so it meets the table and nothing else."""
+    bit 1 in its affinity; an object's parts stop meeting the table by an explicit exclusion of the
+    pair (object body, table body), which would exclude a hull on the same body too: so the hull sits
+    on a child body of the object (rigidly attached, no joint, no mass), whose contype is bit 1 only
+    and affinity none, so it meets the table and nothing else."""
     spec.geom(TABLE_GEOM).conaffinity |= _HULL_BIT
     table_body = _body_of(spec, TABLE_GEOM)
     # every catalog asset's hull is declared, used or not, as build_world declares every mesh: scenes
     # then share one mesh table, and a renderer its one upload (render/offscreen.py)
     scales = [(asset, 1.0) for asset in catalog.assets]
-    scales += sorted({(catalog.get(o.asset), o.scale) for o in objects if o.scale != 1.0}, key=_by_name)
+    scales += [
+        (catalog.get(a), s) for a, s in sorted({(o.asset, o.scale) for o in objects if o.scale != 1.0})
+    ]
     for asset, scale in scales:
         points = _hull_points(tuple(str(asset.file(f)) for f in asset.parts.files)) * scale
         spec.add_mesh(name=_hull_mesh(asset.name, scale), uservert=points.ravel().tolist())
@@ -152,10 +154,6 @@ def _table_through_hulls(spec: mujoco.MjSpec, catalog, objects, margin: float) -
             **{**world.object_contact(asset.friction), "margin": margin},
         )
         spec.add_exclude(bodyname1=obj.name, bodyname2=table_body)
-
-
-def _by_name(pair) -> tuple[str, float]:
-    return pair[0].name, pair[1]
 
 
 def _hull_mesh(asset: str, scale: float) -> str:
