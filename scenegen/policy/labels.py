@@ -319,7 +319,7 @@ def label_scenes(
             sink.write(json.dumps(row, sort_keys=True) + "\n")
             sink.flush()
             cache[_key(row)] = row
-    rows = [{**cache[job.key], "observation": job.observation, "physics": job.physics.key()} for job in jobs]
+    rows = [{**cache[job.key], "observation": job.observation} for job in jobs]
     stored = [cache[k] for k in sorted(cache)] if keep else rows
     # as the log holds them (sorted keys, JSON types): a run resumed from the log writes the same bytes
     stored = [json.loads(json.dumps(row, sort_keys=True)) for row in stored]
