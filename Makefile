@@ -7,7 +7,7 @@ TEST_WORKERS ?= 2
 PYTEST_FILES_AT_ONCE = $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-physics bench-audit bench-start sweep transfer clean
+.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-physics bench-stereo bench-audit bench-start sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -120,6 +120,9 @@ bench-primitives: setup  ## CPU-s per labelled scene and per closed-loop episode
 
 bench-physics: setup  ## cheaper physics for the control loop: each lever's CPU per labelled scene and outcomes against the stored labels, paired by layout (benchmarks/physics_screen.py; 100 layouts, hours: SETTINGS=dt5,hull LAYOUTS=20 for less)
 	$(BIN)/python benchmarks/physics_screen.py $(if $(SETTINGS),--settings $(SETTINGS)) $(if $(LAYOUTS),--layouts $(LAYOUTS))
+
+bench-stereo: setup  ## the simulated active stereo sensor against a D415's figures (plane RMS, fill, edge bands), per category, CPU per frame (benchmarks/stereo_sensor.py, ~3 min)
+	$(BIN)/python benchmarks/stereo_sensor.py
 
 bench-audit: setup  ## the audit of a 3,000-scene rendered batch, baseline commit vs this checkout, 1 and 2 workers (benchmarks/audit_scale.py; generating the batch ~30 min the first time)
 	$(BIN)/python benchmarks/audit_scale.py

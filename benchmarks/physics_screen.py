@@ -153,7 +153,8 @@ def screen_layouts(offset: int, n: int) -> tuple[list[dict], dict[str, dict]]:
     from scenegen.policy.labels import current_rows
     from scenegen.policy.panels import outside_panels
 
-    stored, _ = current_rows([pq.read_table(ROOT / "assets/transfer/v2/labels.parquet").to_pylist()])
+    labels = pq.read_table(ROOT / "assets/transfer/v2/labels.parquet").to_pylist()
+    stored, _ = current_rows([labels], physics="exact")  # the stored labels are exact's
     by_sha: dict[str, dict] = defaultdict(dict)
     for r in stored:
         by_sha[r["scene_sha256"]][r["primitive"]] = r

@@ -69,15 +69,17 @@ def _add_label(sub) -> None:
     lab.set_defaults(run=label)
 
 
-def _add_physics(parser) -> None:
+def _add_physics(parser, reads: bool = False) -> None:
     # names only: importing the settings would load MuJoCo before the CLI has checked MUJOCO_GL
-    parser.add_argument(
-        "--physics",
-        metavar="NAME",
-        help="what the primitives are simulated under: a name of the control loop's physics settings "
-        "(default: its default, exact; docs/env.md 'The physics'); stored rows say theirs, and rows "
-        "of another physics are not reused",
+    what = (
+        "whose label rows to read: those simulated under this physics (default: the default, dt5; "
+        "the committed stores of assets/policy/labels are exact's)"
+        if reads
+        else "what the primitives are simulated under: a name of the control loop's physics settings "
+        "(default: its default, dt5; docs/env.md 'The physics'); stored rows say theirs, and rows "
+        "of another physics are not reused"
     )
+    parser.add_argument("--physics", metavar="NAME", help=what)
 
 
 def _add_success_table(sub) -> None:
@@ -98,6 +100,7 @@ def _add_success_table(sub) -> None:
         help="whose rows to count: the cameras' (default) or the state ablation's; never both",
     )
     tab.add_argument("--min-cell", type=int, default=30, help="scenes a (tag, category) cell needs (30)")
+    _add_physics(tab, reads=True)
     tab.set_defaults(run=success_table)
 
 
@@ -123,6 +126,7 @@ def _add_policy(sub) -> None:
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--quiet", action="store_true", help="no progress bars")
     tr.add_argument("--split", default="train", help="a table's split: train (default), heldout or all")
+    _add_physics(tr, reads=True)
     tr.set_defaults(run=policy_train)
     ev = cmds.add_parser(
         "eval",
@@ -207,18 +211,23 @@ def success_table(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as exc:
             return fail(f"{path}: not a labels Parquet file ({first_line(exc)})")
     try:
-        rows, stale = current_rows(tables, args.observation)
+        rows, stale = current_rows(tables, args.observation, _physics(args))
+    except ValueError as exc:
+        return fail(f"--physics {first_line(exc)}")
     except KeyError as exc:
         return fail(f"{', '.join(map(str, args.labels))}: not labels written by `scenegen label` (no {exc})")
     if stale:
         print(
-            f"left out {stale} rows of older primitive versions or another observation kind "
-            f"(relabel with `scenegen label`: it reuses the current rows)",
+            f"left out {stale} rows of older primitive versions, another observation kind or another "
+            f"physics (relabel with `scenegen label`: it reuses the current rows; or name --physics)",
             file=sys.stderr,
         )
     if not rows:
         named = ", ".join(map(str, args.labels))
-        return fail(f"{named}: no rows of the current primitives ({args.observation} observation)")
+        return fail(
+            f"{named}: no rows of the current primitives ({args.observation} observation, "
+            f"{_physics(args)} physics); rows of another physics: name it with --physics"
+        )
     print(markdown_table(rows, args.min_cell))
     found = differs_from_nominal(rows, args.min_cell)
     print(f"{len(found)} (tag, category) cells whose best primitive beats nominal's best by >= 15 points:")
@@ -237,7 +246,13 @@ def policy_train(args: argparse.Namespace) -> int:
         return fail("--steps and --batch-size must be at least 1, --alpha at least 0")
     split = None if args.split == "all" else args.split
     try:
-        examples = labelled_examples([tuple(pair) for pair in args.data], split, progress=not args.quiet)
+        physics = _physics(args)
+    except ValueError as exc:
+        return fail(f"--physics {first_line(exc)}")
+    try:
+        examples = labelled_examples(
+            [tuple(pair) for pair in args.data], split, progress=not args.quiet, physics=physics
+        )
     except (OSError, ValueError) as exc:
         return fail(first_line(exc))
     summary = train_policy(
@@ -256,6 +271,15 @@ def policy_train(args: argparse.Namespace) -> int:
         f"{sum(last) / len(last):.4f} ({summary['cpu_seconds']} CPU-s) -> {args.out}"
     )
     return 0
+
+
+def _physics(args: argparse.Namespace) -> str:
+    """The physics named by ``--physics`` (default: the default); ValueError names the choices."""
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
+
+    name = args.physics or DEFAULT_PHYSICS
+    physics_named(name)
+    return name
 
 
 def policy_eval(args: argparse.Namespace) -> int:

@@ -31,11 +31,12 @@ from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
 from scenegen.env.control import lean_control
 from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_named
 from scenegen.env.scenes import EnvScene, target_category
+from scenegen.perception.sensor import Sight
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
 from scenegen.sim import world
 
 DEFAULT_CONTROLLER = "BASIC"  # robosuite's composite controller: OSC_POSE arm + gripper, 7-D action
-CONTROL_FREQ = 20  # Hz: one action per 50 ms, 25 physics steps of 2 ms
+CONTROL_FREQ = 20  # Hz: one action per 50 ms (10 physics steps of 5 ms under dt5, 25 of 2 ms under exact)
 FINGER_OPEN = 0.04  # m: finger joint opening of a settled scene (world.GRIPPER_OPEN)
 
 
@@ -244,7 +245,10 @@ class SceneEnv(ManipulationEnv):
                 out[f"{name}_image"] = f.rgb
             depth = f.depth
             if self.depth_sensor is not None:
-                depth = self.depth_sensor[0].corrupt(depth, self.depth_sensor[1], name)
+                sensor, point = self.depth_sensor
+                sight = Sight(self._renderer, model, data, name, self.camera_size, self.scene.segmentation,
+                              f.depth, f.rgb)  # fmt: skip
+                depth = sensor.measure(sight, point)
             out[f"{name}_depth"] = depth[..., None]
             if segmentation:
                 out[f"{name}_segmentation"] = f.seg.astype(np.int32)[..., None]

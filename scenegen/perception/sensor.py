@@ -1,4 +1,13 @@
-"""A depth sensor's errors, for evaluating under a perturbation (issue 45; docs/transfer.md).
+"""Depth sensors: what a camera's depth frame holds when a real sensor, not the renderer, makes it.
+
+Two sensors, by name in :data:`SENSORS`: ``structured_light``, a parametric noise model laid over the
+exact depth (below), and ``active_stereo``, a RealSense-like sensor simulated from how it works
+(perception/stereo.py: an IR dot pattern, two imagers, semi-global matching). Both answer
+``measure(sight, point)``: the depth (H, W) metres of one camera's frame (:class:`Sight`: the
+renderer, the model and data at that instant, the camera and its exact frames) at the decision point
+``point``, whose string (with the camera's name) seeds the sensor's randomness.
+
+The parametric model (issue 45; docs/transfer.md):
 
 The renderer's depth is exact. A structured-light camera's is not: its error grows with range and
 it loses pixels where the surface jumps (the projector's pattern is shadowed there).
@@ -15,8 +24,11 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from scenegen.perception.stereo import ActiveStereo
 
 SEEDING = 1  # the version of how a frame's noise is drawn from (decision point, camera)
 
@@ -55,6 +67,10 @@ class StructuredLight:
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
         return cv2.dilate(jump.astype(np.uint8), kernel).astype(bool)
 
+    def measure(self, sight: Sight, point: str) -> np.ndarray:
+        """The depth (H, W) of ``sight``'s frame as this sensor returns it at ``point``."""
+        return self.corrupt(sight.depth, point, sight.camera)
+
     def corrupt(self, depth: np.ndarray, point: str, camera: str) -> np.ndarray:
         """``depth`` (H, W[, 1]) metres as the sensor returns it at the decision point ``point`` (a
         string naming the scene and the decision) from ``camera``; the input is not changed."""
@@ -75,4 +91,22 @@ def _seed(point: str, camera: str) -> int:
     return int.from_bytes(hashlib.sha256(f"{point}|{camera}".encode()).digest()[:8], "little")
 
 
-SENSORS = {"structured_light": StructuredLight()}
+@dataclass(frozen=True)
+class Sight:
+    """One camera's frame at an instant, as a sensor may look at it: ``renderer`` (a
+    ``render.offscreen.SceneRenderer``), ``model`` and ``data`` (MuJoCo's, forwarded), ``camera`` (a
+    camera of the model), ``size`` (width, height), ``ids`` (the scene's instance ids), the exact
+    ``depth`` (H, W) metres and the ``rgb`` (H, W, 3) colour frame when it was drawn (else None)."""
+
+    renderer: Any
+    model: Any
+    data: Any
+    camera: str
+    size: tuple[int, int]
+    ids: dict
+    depth: np.ndarray
+    rgb: np.ndarray | None = None
+
+
+SENSORS = {"structured_light": StructuredLight(), "active_stereo": ActiveStereo()}
+SENSOR_NAMES = ("exact", *SENSORS)  # what a recipe's or a command's ``sensor`` may say

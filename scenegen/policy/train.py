@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from scenegen.core.files import sha256_file
 from scenegen.env.mixture import MixtureRecipe, MixtureSampler
+from scenegen.env.physics import DEFAULT_PHYSICS
 from scenegen.env.scenes import EnvScene, load_scenes
 from scenegen.manipulation.primitives import PRIMITIVES
 from scenegen.policy.labels import CAMERA_SIZE, current, scene_sha256, target_category
@@ -63,9 +64,14 @@ def render_observation(env, scene: EnvScene) -> np.ndarray:
 
 
 def labelled_examples(
-    sources: Sequence[tuple[Path, Path]], split: str | None = "train", env=None, progress: bool = False
+    sources: Sequence[tuple[Path, Path]],
+    split: str | None = "train",
+    env=None,
+    progress: bool = False,
+    physics: str = DEFAULT_PHYSICS,
 ) -> Examples:
-    """Examples of every labelled scene of every (scenes, labels) pair."""
+    """Examples of every labelled scene of every (scenes, labels) pair, from the label rows simulated
+    under ``physics``."""
     import pyarrow.parquet as pq
 
     from scenegen.env.robosuite_env import SceneEnv
@@ -78,14 +84,15 @@ def labelled_examples(
         for scene in load_scenes(scenes_path, split):
             by_sha.setdefault(scene_sha256(scene), scene)
         for row in pq.read_table(labels_path).to_pylist():
-            if not current(row):
+            if not current(row, physics=physics):
                 stale += 1
                 continue
             bits.setdefault(row["scene_sha256"], {})[row["primitive"]] = bool(row["success"])
     shas = [sha for sha in by_sha if sha in bits]
     if not shas:
         why = (
-            f" ({stale} rows of older primitive versions, another observation or an unjudged time: relabel)"
+            f" ({stale} rows of older primitive versions, another observation or physics, or an unjudged "
+            f"time: relabel, or name their --physics)"
             if stale
             else ""
         )

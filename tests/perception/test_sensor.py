@@ -57,6 +57,7 @@ def test_in_closed_loop_every_plan_is_made_from_the_noisy_depth(demo_batch: Path
     """Under the depth-noise variant the oracle's decision (rendered by ``observe``) and the attempt
     the simulation executed (its own observation inside the primitive) make the same plan, and it is
     not the exact depth's plan: both read the same noisy frames, seeded by the decision point."""
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_mark, physics_named
     from scenegen.env.scenes import batch_scenes
     from scenegen.experiment.closed_loop import evaluate_policies
     from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore, Variant
@@ -69,11 +70,12 @@ def test_in_closed_loop_every_plan_is_made_from_the_noisy_depth(demo_batch: Path
     noise = Variant("depth_noise", 1.0, "structured_light")
     exact = evaluate_policies(policies, scenes, store, observations, NOMINAL)
     noisy = evaluate_policies(policies, scenes, store, observations, noise)
-    key = ObservationStore.key(scene_sha256(scenes[0]), (), noise, "rgbd", "oracle")
+    seen = "oracle" + physics_mark(physics_named(DEFAULT_PHYSICS))  # what the closed loop's key says
+    key = ObservationStore.key(scene_sha256(scenes[0]), (), noise, "rgbd", seen)
     decided = observations.meta(key)["plans"][noisy[0]["choices"][0]]
     assert noisy[0]["plans"][0].split("+")[0] == decided
     assert noisy[0]["plans"][0] != exact[0]["plans"][0]
-    assert key != ObservationStore.key(scene_sha256(scenes[0]), (), NOMINAL, "rgbd", "oracle")
+    assert key != ObservationStore.key(scene_sha256(scenes[0]), (), NOMINAL, "rgbd", seen)
 
 
 def test_a_re_observation_under_noise_plans_as_the_simulation_did():

@@ -128,9 +128,14 @@ def test_a_store_keeps_every_row_and_reuses_other_label_files(tmp_path: Path):
     scenes = [s for s in map(reference_scene, rows[:400]) if scene_sha256(s) in known][:3]
     assert len(scenes) == 3
     store = tmp_path / "store.parquet"
-    first, ran = label_scenes(scenes[:2], store, progress=False, keep=True, reuse=[committed])
+    # the committed rows were simulated under exact: only a run under exact may reuse them
+    first, ran = label_scenes(
+        scenes[:2], store, progress=False, keep=True, reuse=[committed], physics="exact"
+    )
     assert ran == 0 and len(first) == 10
-    second, ran = label_scenes(scenes[2:], store, progress=False, keep=True, reuse=[committed])
+    second, ran = label_scenes(
+        scenes[2:], store, progress=False, keep=True, reuse=[committed], physics="exact"
+    )
     assert ran == 0 and len(second) == 5
     stored = pq.read_table(store).to_pylist()
     assert {r["scene_sha256"] for r in first + second} <= {r["scene_sha256"] for r in stored}
@@ -177,7 +182,7 @@ def test_a_scene_is_solvable_once_a_current_primitive_succeeds_and_unsolvable_wh
     rows += [row("c", p, True) for p in list(PRIMITIVES)[:1]]  # solved by its first row
     rows += [row("d", p, p == "top_grasp", version=0 if p == "top_grasp" else None) for p in PRIMITIVES]
     rows += [row("e", p, False) for p in list(PRIMITIVES)[:-1]]  # one primitive unlabelled: unknown
-    assert solvable_scenes(rows) == {"a": True, "b": False, "c": True}
+    assert solvable_scenes(rows, "exact") == {"a": True, "b": False, "c": True}  # no physics column: exact
 
 
 def test_labelling_until_solved_stops_each_scene_at_its_first_success(tmp_path: Path):
@@ -210,7 +215,9 @@ def test_labelling_until_solved_stops_each_scene_at_its_first_success(tmp_path: 
                 chosen[kind] = scene
     assert set(chosen) == set(kinds)
     store = tmp_path / "store.parquet"
-    rows, ran = label_until_solved(list(chosen.values()), store, progress=False, reuse=[committed])
+    rows, ran = label_until_solved(
+        list(chosen.values()), store, progress=False, reuse=[committed], physics="exact"
+    )
     per_scene = defaultdict(list)
     for r in rows:
         per_scene[r["scene_sha256"]].append(r["primitive"])
@@ -218,29 +225,30 @@ def test_labelling_until_solved_stops_each_scene_at_its_first_success(tmp_path: 
     assert ran == 0
     assert per_scene[sha["first"]] == [first] and per_scene[sha["second"]] == [first, second]
     assert per_scene[sha["none"]] == list(SOLVE_ORDER)
-    stored = solvable_scenes(pq.read_table(store).to_pylist())  # the store also keeps the reused rows
+    stored = solvable_scenes(pq.read_table(store).to_pylist(), "exact")  # it keeps the reused rows too
     assert {k: stored[v] for k, v in sha.items()} == {"first": True, "second": True, "none": False}
-    assert solvable_scenes(rows) == {sha["first"]: True, sha["second"]: True, sha["none"]: False}
+    assert solvable_scenes(rows, "exact") == {sha["first"]: True, sha["second"]: True, sha["none"]: False}
+    assert solvable_scenes(rows) == {}  # nothing of exact's answers for the default physics
 
 
 def test_rows_say_their_physics_and_another_physics_is_labelled_apart(
     labelled: Path, demo_batch: Path, tmp_path: Path, monkeypatch
 ):
-    from scenegen.env.physics import EXACT_KEY, PHYSICS
+    from scenegen.env.physics import DEFAULT_PHYSICS, PHYSICS
     from scenegen.policy.labels import current
 
-    coarse = PHYSICS["exact"].with_changes("coarse", timestep=0.005)
+    coarse = PHYSICS["exact"].with_changes("coarse", timestep=0.0025)
     monkeypatch.setitem(PHYSICS, "coarse", coarse)
     out = tmp_path / "labels.parquet"
-    shutil.copy(labelled, out)  # the exact rows do not answer for another physics
-    assert {r["physics"] for r in pq.read_table(out).to_pylist()} == {EXACT_KEY}
+    shutil.copy(labelled, out)  # the default physics' rows do not answer for another physics
+    assert {r["physics"] for r in pq.read_table(out).to_pylist()} == {PHYSICS[DEFAULT_PHYSICS].key()}
     stats = label(demo_batch, out, ["top_grasp"], limit=1, physics="coarse", progress=False)
     assert (stats["ran"], stats["reused"]) == (1, 0)
     (row,) = pq.read_table(out).to_pylist()
     assert row["physics"] == coarse.key() and current(row, physics="coarse") and not current(row)
     # a row written before the physics was a setting was made under exact
     old = {k: v for k, v in pq.read_table(labelled).to_pylist()[0].items() if k != "physics"}
-    assert current(old) and not current(old, physics="coarse")
+    assert current(old, physics="exact") and not current(old) and not current(old, physics="coarse")
     with pytest.raises(LabelError, match="--physics fast: unknown; choose from exact"):
         label(demo_batch, out, ["top_grasp"], limit=1, physics="fast", progress=False)
 

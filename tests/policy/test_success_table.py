@@ -71,18 +71,21 @@ def test_tables_combine_once_per_scene_and_primitive_leaving_stale_rows_out(tmp_
     import pyarrow.parquet as pq
 
     from scenegen.cli import main
+    from scenegen.env.physics import DEFAULT_PHYSICS, PHYSICS
     from scenegen.manipulation.primitives import PRIMITIVES
     from scenegen.policy.labels import current_rows
 
     version = PRIMITIVES["top_grasp"].version
+    made = {"primitive_version": version, "observation": "rgbd", "physics": PHYSICS[DEFAULT_PHYSICS].key()}
     labelled = [
-        row | {"scene_sha256": f"s{i}", "primitive_version": version, "observation": "rgbd"}
+        row | {"scene_sha256": f"s{i}", **made}
         for i, row in enumerate(rows(None, "mug", "top_grasp", 27, 30))
     ]
     stale = [row | {"primitive_version": version - 1} for row in labelled[:5]]
     state = [row | {"observation": "state", "success": False} for row in labelled[:5]]
-    combined, left_out = current_rows([labelled, labelled[:10], stale, state])
-    assert len(combined) == 30 and left_out == 10
+    other = [row | {"physics": "other"} for row in labelled[:5]]  # simulated under another physics
+    combined, left_out = current_rows([labelled, labelled[:10], stale, state, other])
+    assert len(combined) == 30 and left_out == 15
     assert current_rows([state], "state")[0] == state
     for name, table in (("a", labelled[:10]), ("b", labelled + stale + state)):
         pq.write_table(pa.Table.from_pylist(table), tmp_path / f"{name}.parquet")
@@ -90,4 +93,4 @@ def test_tables_combine_once_per_scene_and_primitive_leaving_stale_rows_out(tmp_
     out, err = capsys.readouterr()
     assert "| nominal | **0.90** [0.74, 0.97] n=30 |" in out and "left out 10 rows" in err
     assert main(["success-table", str(tmp_path / "a.parquet"), "--observation", "state"]) == 2
-    assert "no rows of the current primitives (state observation)" in capsys.readouterr().err
+    assert "no rows of the current primitives (state observation, dt5 physics)" in capsys.readouterr().err
