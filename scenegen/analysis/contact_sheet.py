@@ -103,6 +103,10 @@ def contact_sheet(
         if depth:
             d = _read(scene_dir / f"{cam}_depth.png", cv2.IMREAD_UNCHANGED)
             views.append(cv2.resize(_depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
+            images = next(c for c in record["cameras"] if c["name"] == cam).get("images") or {}
+            if "sensor_depth" in images:  # the depth sensor's frame beside the exact one (docs/sensor.md)
+                d = _read(scene_dir / images["sensor_depth"], cv2.IMREAD_UNCHANGED)
+                views.append(cv2.resize(_depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
         if seg:
             s = _read(scene_dir / f"{cam}_seg.png", cv2.IMREAD_UNCHANGED)
             views.append(cv2.resize(_seg_view(s), THUMB, interpolation=cv2.INTER_NEAREST))

@@ -87,7 +87,15 @@ def check_scenes(
         shared = {str(p): audit.file_sha256(p) for p in sorted(assets.iterdir()) if p.is_file()}
     sampled = _sample(index, audit.image_sample, audit.sample_seed) if source.rendered else frozenset()
     jobs = [
-        (where, source.predicate_version, batch, chunk, _repairs_of(chunk, repaired), shared, sampled)
+        (
+            where,
+            (source.predicate_version, source.sensor),
+            batch,
+            chunk,
+            _repairs_of(chunk, repaired),
+            shared,
+            sampled,
+        )  # fmt: skip
         for chunk in (index[i : i + SCENES_PER_JOB] for i in range(0, len(index), SCENES_PER_JOB))
     ]
     listed: set[str] = set()
@@ -122,12 +130,14 @@ def _sample(index: list[dict], size: int | None, seed: int) -> frozenset[str] | 
 def _scene_job(job: tuple) -> tuple[list[tuple], set[str], list[int], list[tuple]]:
     """One worker job: the scenes of ``chunk`` checked; the RGB camera count of each readable scene
     record, and the sampled scenes' image statistic rows (empty ``sampled``: none measured)."""
-    where, predicate_version, batch, chunk, repaired, shared, sampled = job
+    where, (predicate_version, sensor), batch, chunk, repaired, shared, sampled = job
     findings = _Findings(shared)
     listed: set[str] = set()
     cameras, rows = [], []
     for row in chunk:
         files, record = _scene(findings, where, predicate_version, batch, row, repaired)
+        if record is not None:
+            _sensor(findings, f"{where}: {row['scene_id']}/scene.json", record, sensor)
         listed |= files
         if record is None or sampled == frozenset():
             continue
@@ -211,6 +221,24 @@ def compare_image_sample(audit, where: str, recorded: RealismCheck, sample: Real
         audit.violation(at, "realism", f"{rule}; outside: {'; '.join(far[:3])}"[:500])
     else:
         audit.report.verified.append(f"{where}: {rule}")
+
+
+def _sensor(audit, at: str, record: dict, sensor: dict | None) -> None:
+    """A scene made with the manifest's depth sensor (name and version, or none) and, for one, each
+    camera's sensor depth listed among its files (whose checksums :func:`_scene` verifies)."""
+    recorded = (record.get("render") or {}).get("sensor")
+    if recorded != sensor:
+        made = recorded.get("name") if isinstance(recorded, dict) else recorded
+        said = (sensor or {}).get("name")
+        audit.violation(at, "sensor", f"render.sensor: {made} (or another version); the manifest: {said}")
+        return
+    if sensor is None:
+        return
+    files = record.get("files") or {}
+    for cam in record.get("cameras") or []:
+        listed = (cam.get("images") or {}).get("sensor_depth")
+        if listed is None or listed not in files:
+            audit.violation(at, "missing_file", f"camera {cam.get('name')}: its sensor depth is not listed")
 
 
 def _scene(

@@ -170,7 +170,8 @@ def reference(args: argparse.Namespace) -> int:
 
     try:
         backend = backend_from(args)
-        config = load_pipeline(args.pipeline, {"n": args.n, "seed": args.seed, "render": False})
+        overrides = {"n": args.n, "seed": args.seed, "render": False, "sensor": "exact"}
+        config = load_pipeline(args.pipeline, overrides)
     except (ConfigError, CatalogError, BackendError) as exc:
         return fail(str(exc))
     if args.workers < 1:

@@ -128,7 +128,7 @@ def sweep(args: argparse.Namespace) -> int:
     if args.cost_weight < 0:
         return fail(f"--cost-weight {args.cost_weight}: must be >= 0")
     try:
-        config = load_pipeline(args.pipeline, {"seed": args.seed, "render": False})
+        config = load_pipeline(args.pipeline, {"seed": args.seed, "render": False, "sensor": "exact"})
     except (ConfigError, CatalogError) as exc:
         return fail(str(exc))
     if config.proposer.kind != "diffusion":

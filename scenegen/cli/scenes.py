@@ -45,7 +45,14 @@ def add_commands(sub) -> None:
         "--workers", type=int, default=1, help="processes (or Ray actors) for check/settle/render (default 1)"
     )
     add_backend_arguments(gen)
-    gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed)")
+    gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed; no sensor)")
+    gen.add_argument(
+        "--sensor",
+        choices=("exact", "active_stereo", "structured_light"),
+        help="a depth sensor's frames stored beside the exact depth, <cam>_depth_<sensor>.png, instead of "
+        "the recipe's (default exact: none; active_stereo: a simulated RealSense D415, about 0.4 CPU-s "
+        "a 640x480 frame; docs/sensor.md)",
+    )
     gen.add_argument(
         "--check",
         action="store_true",
@@ -77,8 +84,10 @@ def generate(args: argparse.Namespace) -> int:
 
     overrides = {"n": args.n, "seed": args.seed, "max_proposals": args.max_proposals}
     overrides["max_tries"] = args.max_tries
+    if args.sensor:
+        overrides["sensor"] = args.sensor
     if args.no_render:
-        overrides["render"] = False
+        overrides |= {"render": False, "sensor": "exact"}
     if args.workers < 1:
         return fail(f"--workers {args.workers}: must be at least 1")
     try:

@@ -1,7 +1,8 @@
 """Stored scenes as WebDataset tar shards (``scenegen export BATCH --format webdataset --out DIR``).
 
 One sample per accepted scene, its key the scene id: ``scene.json``, ``scene.xml`` and every image the
-scene stored (``<cam>_rgb.png``, ``<cam>_depth.png``, ``<cam>_seg.png``), byte for byte. The batch's
+scene stored (``<cam>_rgb.png``, ``<cam>_depth.png``, ``<cam>_seg.png`` and a depth sensor's
+``<cam>_depth_<sensor>.png``), byte for byte. The batch's
 meshes and textures (its ``_assets/`` folder, referenced by every scene.xml as ``../_assets/``) go
 once into ``assets-000000.tar``, one sample per file. A scene is rebuilt from the shards alone by
 writing its ``scene.xml`` into ``<dir>/<scene_id>/`` and the asset samples into ``<dir>/_assets/``

@@ -138,7 +138,18 @@ def batch_source(
         packages=package_versions(),
         rejections_by_label=dict(sorted(Counter(r["label"] for r in rejections).items())),
         rendered=bool(config.render),
+        sensor=sensor_entry(config),
     )
+
+
+def sensor_entry(config) -> dict[str, str] | None:
+    """The recipe's depth sensor as a manifest and a scene.json record it: name and version (the key
+    of what decides its frames); None for exact depth only."""
+    if not config.render or config.sensor == "exact":
+        return None
+    from scenegen.perception.sensor import SENSORS
+
+    return {"name": config.sensor, "version": SENSORS[config.sensor].key()}
 
 
 def effective_shares(

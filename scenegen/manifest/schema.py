@@ -205,6 +205,8 @@ class Source(_Entry):
     packages: dict[str, str] | None = None  # versions of the packages that made it
     rejections_by_label: dict[str, int] = Field(default_factory=dict)
     rendered: bool = False  # scenes carry RGB images (then image_stats is a required realism check)
+    # a depth sensor's frames stored beside the exact depth: {name, version} (docs/sensor.md); None: none
+    sensor: dict[str, str] | None = None
     collection: str | None = None  # real: how the data was measured
     realism: list[RealismCheck] = Field(default_factory=list)
     scenegen_version: str = __version__

@@ -321,12 +321,16 @@ def encode_png(image: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+def depth_png(depth: np.ndarray) -> bytes:
+    """PNG bytes of a depth frame (H, W) metres as uint16 millimetres (0 = no return)."""
+    return encode_png(np.clip(np.round(depth * 1000.0), 0, 65535).astype(np.uint16))
+
+
 def frames_to_files(camera: str, frames: Frames) -> dict[str, bytes]:
     """{file name: PNG bytes} of one camera's frames."""
-    depth_mm = np.clip(np.round(frames.depth * 1000.0), 0, 65535).astype(np.uint16)
     return {
         f"{camera}_rgb.png": encode_png(frames.rgb),
-        f"{camera}_depth.png": encode_png(depth_mm),
+        f"{camera}_depth.png": depth_png(frames.depth),
         f"{camera}_seg.png": encode_png(frames.seg.astype(np.uint16)),
     }
 

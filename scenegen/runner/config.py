@@ -9,7 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
@@ -55,7 +55,9 @@ class PipelineConfig(BaseModel):
     ``condition`` (see :class:`Condition`); ``proposer``
     (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
     ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``;
-    ``robot_mesh_detail`` (the robot's meshes decimated for drawing).
+    ``robot_mesh_detail`` (the robot's meshes decimated for drawing); ``sensor`` (``exact``, the
+    default: the renderer's depth only; ``active_stereo`` or ``structured_light``: each camera's depth
+    as that sensor returns it is stored too, ``<cam>_depth_<sensor>.png``; docs/sensor.md).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -76,6 +78,8 @@ class PipelineConfig(BaseModel):
     # Share of the robot's visual-mesh triangles drawn (quadric decimation, once per worker; the
     # simulated model is unchanged); None: the meshes as shipped. Recorded in scene.json `render`.
     robot_mesh_detail: float | None = Field(None, gt=0.0, le=1.0)
+    # A depth sensor's frames stored beside the exact depth (perception/sensor.py SENSORS; needs render).
+    sensor: Literal["exact", "active_stereo", "structured_light"] = "exact"
     # User asset catalogs (``scenegen assets add``), each a catalog.yaml or its folder, relative to the
     # working directory; merged after the bundled one. Empty: the bundled catalog only.
     catalogs: tuple[str, ...] = ()
@@ -93,6 +97,8 @@ class PipelineConfig(BaseModel):
             raise ValueError(
                 f"proposer.assets: none is a {self.condition.target} (the target); add one, or drop the key"
             )
+        if self.sensor != "exact" and not self.render:
+            raise ValueError(f"sensor: {self.sensor} needs rendered frames (render: true); or sensor: exact")
         diffusion = self.proposer.kind == "diffusion"
         if diffusion and self.condition.target not in self.proposer.known_categories():
             raise ValueError(
@@ -116,6 +122,8 @@ class PipelineConfig(BaseModel):
         for key in ("realism", "robot_mesh_detail", "max_tries"):  # the same for later keys
             if data.get(key, 0) is None:
                 del data[key]
+        if data.get("sensor") == "exact":
+            del data["sensor"]
         if not data.get("catalogs", True):  # and for a recipe of the bundled catalog only
             del data["catalogs"]
         return data

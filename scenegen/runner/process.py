@@ -17,7 +17,7 @@ import mujoco
 from scenegen import __version__
 from scenegen.assets.catalog import Catalog
 from scenegen.check.geometry import run_checks
-from scenegen.manifest.derive import SCENE_PACKAGES, package_versions
+from scenegen.manifest.derive import SCENE_PACKAGES, package_versions, sensor_entry
 from scenegen.render.offscreen import RENDER_SETTINGS  # settings only: no GL is touched at import
 from scenegen.runner.config import PipelineConfig, RealismFilter, validate_config
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
@@ -108,7 +108,7 @@ def process_proposal(
     segmentation: dict[str, int] = {}
     if config.render:
         clock.start()
-        rendered = _render(model, data, proposal, config.robot_mesh_detail or 1.0)
+        rendered = _render(model, data, proposal, config.robot_mesh_detail or 1.0, config.sensor)
         if isinstance(rendered, Rejection):
             out.rejection = rendered
             return out
@@ -128,7 +128,7 @@ def process_proposal(
         objects=tuple(objects),
         furniture=proposal.furniture,
         lighting=proposal.lighting,
-        cameras=tuple(_camera_entry(cam, config.render) for cam in proposal.cameras),
+        cameras=tuple(_camera_entry(cam, config.render, config.sensor) for cam in proposal.cameras),
         tags=tags,
         predicate_version=PREDICATE_VERSION,
         segmentation=segmentation,
@@ -157,17 +157,20 @@ def render_settings(config: PipelineConfig) -> dict | None:
     """What scene.json records of how its images were drawn (None: not rendered)."""
     if not config.render:
         return None
-    if config.robot_mesh_detail is None:
-        return RENDER_SETTINGS  # as before the setting existed: earlier batches keep their bytes
-    return {**RENDER_SETTINGS, "robot_mesh_detail": config.robot_mesh_detail}
+    settings = dict(RENDER_SETTINGS)  # as before a setting existed when it is left at its default
+    if config.robot_mesh_detail is not None:
+        settings["robot_mesh_detail"] = config.robot_mesh_detail
+    if config.sensor != "exact":
+        settings["sensor"] = sensor_entry(config)  # the sensor and what decides its frames
+    return settings
 
 
 def _render(
-    model, data, proposal: SceneProposal, robot_detail: float = 1.0
+    model, data, proposal: SceneProposal, robot_detail: float = 1.0, sensor: str = "exact"
 ) -> tuple[dict[str, bytes], dict[str, int]] | Rejection:
-    """PNG files of every camera (rgb, depth, seg) and the segmentation ids; a ``render_failed``
-    rejection when the renderer fails on this scene."""
-    from scenegen.render.offscreen import frames_to_files, process_renderer, segmentation_ids
+    """PNG files of every camera (rgb, depth, seg, and the ``sensor``'s depth unless it is exact) and
+    the segmentation ids; a ``render_failed`` rejection when the renderer fails on this scene."""
+    from scenegen.render.offscreen import depth_png, frames_to_files, process_renderer, segmentation_ids
 
     segmentation = segmentation_ids(
         model, [o.name for o in proposal.objects], [f.name for f in proposal.furniture]
@@ -189,7 +192,23 @@ def _render(
     images: dict[str, bytes] = {}
     for cam, frame in zip(proposal.cameras, frames, strict=True):
         images.update(frames_to_files(cam.name, frame))
+    if sensor != "exact":
+        from scenegen.perception.sensor import SENSORS, Sight
+
+        for cam, frame in zip(proposal.cameras, frames, strict=True):
+            sight = Sight(process_renderer(), model, data, cam.name, (cam.width, cam.height), segmentation,
+                          frame.depth, frame.rgb)  # fmt: skip
+            # seeded by the scene (its proposal index and seed) and the camera: the same bytes in any
+            # worker, on a resumed run too
+            point = f"scene_{proposal.index:06d}|{proposal.seed}|settled"
+            images[sensor_depth_file(cam.name, sensor)] = depth_png(SENSORS[sensor].measure(sight, point))
     return images, segmentation
+
+
+def sensor_depth_file(camera: str, sensor: str) -> str:
+    """The file a camera's depth as ``sensor`` returns it is stored in (beside ``<cam>_depth.png``,
+    the exact depth; the same uint16 millimetres, 0 = no return)."""
+    return f"{camera}_depth_{sensor}.png"
 
 
 def settled_objects(model: mujoco.MjModel, proposal: SceneProposal, qpos) -> list[SettledObject]:
@@ -236,7 +255,7 @@ def realism_check(
     )
 
 
-def _camera_entry(cam, rendered: bool = True) -> dict:
+def _camera_entry(cam, rendered: bool = True, sensor: str = "exact") -> dict:
     rot = world.camera_rotation(cam)
     return {
         **cam.model_dump(mode="json"),
@@ -246,8 +265,15 @@ def _camera_entry(cam, rendered: bool = True) -> dict:
             "position": list(cam.position),
             "rotation": [[round(float(v), 7) for v in row] for row in rot],
         },
-        **({"images": {k: f"{cam.name}_{k}.png" for k in ("rgb", "depth", "seg")}} if rendered else {}),
+        **({"images": _images(cam.name, sensor)} if rendered else {}),
     }
+
+
+def _images(camera: str, sensor: str) -> dict[str, str]:
+    images = {k: f"{camera}_{k}.png" for k in ("rgb", "depth", "seg")}
+    if sensor != "exact":
+        images["sensor_depth"] = sensor_depth_file(camera, sensor)
+    return images
 
 
 # ------------------------------------------------------------------------------------- workers
