@@ -1,7 +1,10 @@
-"""What the structured-light depth noise does to the retrieval head's region step (issue 45's
-"next"; docs/transfer.md, "Result"): measured on frames, not in closed loop.
+"""What a depth sensor does to the retrieval head's region step (issue 45's "next"; docs/transfer.md,
+"Result"; issue 62 for the active stereo sensor): measured on frames, not in closed loop.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/depth_noise_regions.py [PER_PANEL]   # ~1 min at 2
+    MUJOCO_GL=egl .venv/bin/python benchmarks/depth_noise_regions.py [PER_PANEL] [SENSOR]   # ~1 min at 2
+
+SENSOR: ``structured_light`` (default; results in depth_noise_regions.json) or ``active_stereo``
+(depth_noise_regions_active_stereo.json).
 
 For the first PER_PANEL (default 2) layouts of each rare panel of the version 2 panels' validation
 side, at the first decision, per camera: the share of the table top that ``regions.foreground``
@@ -22,6 +25,7 @@ import numpy as np
 RESULTS = Path(__file__).parent / "results" / "depth_noise_regions.json"
 RARE = ("near_edge", "toppled", "occluded", "clutter", "stacked", "low_light")
 TABLE_TOP_TOL = 0.001  # m: a table-top pixel's exact world point lies within this of the top
+ABOVE_MM = (5, 8, 12)  # foreground thresholds tried on the filled, smoothed depth
 
 
 def filled(depth: np.ndarray) -> np.ndarray:
@@ -41,9 +45,10 @@ def median5(depth: np.ndarray) -> np.ndarray:
     return cv2.medianBlur(depth.astype(np.float32), 5)
 
 
-def frame_rows(scene, observations: dict, cameras, sensor, point: str) -> list[dict]:
-    """Per camera and depth variant: table-top pixels counted foreground, regions, target pixels in
-    a region (counts, pooled by the caller)."""
+def frame_rows(scene, observations: dict, sensed: dict, cameras) -> list[dict]:
+    """Per camera and depth variant (``observations``: exact frames, ``sensed``: the sensor's):
+    table-top pixels counted foreground, regions, target pixels in a region (counts, pooled by the
+    caller)."""
     from scenegen.perception.points import masked_points
     from scenegen.perception.retrieval import regions
 
@@ -54,7 +59,7 @@ def frame_rows(scene, observations: dict, cameras, sensor, point: str) -> list[d
         exact = np.squeeze(observations[f"{camera.name}_depth"], -1).astype(np.float32)
         seg = np.squeeze(observations[f"{camera.name}_segmentation"], -1)
         robot, target = seg == ids["robot"], seg == scene.target_id
-        noisy = sensor.corrupt(exact, point=point, camera=camera.name)
+        noisy = np.squeeze(sensed[f"{camera.name}_depth"], -1).astype(np.float32)
         world = masked_points(exact, np.ones_like(exact, bool), camera).reshape(*exact.shape, 3)
         top = (
             (seg == ids["table"])
@@ -69,9 +74,14 @@ def frame_rows(scene, observations: dict, cameras, sensor, point: str) -> list[d
             "noisy, holes filled": mended,
             "noisy, holes filled, median 5": median5(mended),
         }
+        smooth = median5(mended)
+        for mm in ABOVE_MM:  # the foreground's height threshold, for a sensor whose depth is not exact
+            variants[f"noisy, filled, median 5, above {mm} mm"] = smooth
         for name, depth in variants.items():
-            keep, _ = regions.foreground(depth, robot, camera)
-            found = regions.candidate_regions(depth, robot, camera)
+            above = float(name.rsplit("above ", 1)[1].split()[0]) / 1000 if "above" in name else None
+            above = regions.ABOVE_TABLE if above is None else above
+            keep, _ = regions.foreground(depth, robot, camera, above)
+            found = regions.candidate_regions(depth, robot, camera, above)
             inside = np.any(found, axis=0) if found else np.zeros_like(keep)
             rows.append(
                 {
@@ -86,7 +96,7 @@ def frame_rows(scene, observations: dict, cameras, sensor, point: str) -> list[d
     return rows
 
 
-def main(per_panel: int) -> dict:
+def main(per_panel: int, sensor: str = "structured_light") -> dict:
     from scenegen.env.robosuite_env import SceneEnv
     from scenegen.perception.observation import CAMERA_SIZE, CAMERAS
     from scenegen.perception.sensor import SENSORS
@@ -104,8 +114,9 @@ def main(per_panel: int) -> dict:
                 )
             env.reset_to(scene)
             observed = env.camera_observations(image=False)
-            point = f"{panel_id(scene)}|regions"
-            rows += frame_rows(scene, observed, CAMERAS, SENSORS["structured_light"], point)
+            env.depth_sensor = (SENSORS[sensor], f"{panel_id(scene)}|regions")
+            sensed = env.camera_observations()  # with the colour frame, as at a decision
+            rows += frame_rows(scene, observed, sensed, CAMERAS)
     if env is not None:
         env.close()
     pooled = {}
@@ -121,11 +132,14 @@ def main(per_panel: int) -> dict:
             ),
         }
     frames = sum(r["variant"] == "exact" for r in rows)
-    return {"layouts": per_panel * len(RARE), "frames": frames, "pooled": pooled}
+    return {"sensor": sensor, "layouts": per_panel * len(RARE), "frames": frames, "pooled": pooled}
 
 
 if __name__ == "__main__":
-    result = main(int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+    sensor = sys.argv[2] if len(sys.argv) > 2 else "structured_light"
+    result = main(int(sys.argv[1]) if len(sys.argv) > 1 else 2, sensor)
+    if sensor != "structured_light":
+        RESULTS = RESULTS.with_name(f"depth_noise_regions_{sensor}.json")
     RESULTS.parent.mkdir(exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=1) + "\n")
     for variant, figures in result["pooled"].items():

@@ -52,6 +52,10 @@ class ActiveStereo:
     projector_offset: float = 0.0275  # the projector's place right of the left imager (between them)
     fovy: float = 40.0  # the imagers' vertical field of view: D415 depth 65 x 40 deg (H x V)
     aspect: float = 848 / 480  # the imagers' width / height (D4xx modes 1280x720, 848x480, 424x240)
+    # the imagers' rows whatever the colour frame's size (848 x 480, a D4xx mode: a smaller colour
+    # frame keeps the sensor's precision, as a real camera's depth is decimated after matching, not
+    # matched small); 0: the colour frame's rows
+    imager_rows: int = 480
     projector_fovy: float = 46.0  # wider than the imagers, so their views are lit to the edge
     # The projected pattern: dots per projector pixel, their blur (px) and the pattern's seed (fixed:
     # one projector, one pattern).
@@ -84,9 +88,10 @@ class ActiveStereo:
         return f"active_stereo{SEEDING}:{dataclasses.astuple(self)}"
 
     def imager_size(self, height: int) -> tuple[int, int]:
-        """(width, height) of the IR images for a colour frame ``height`` rows tall: the same rows,
-        the imagers' own aspect (848 x 480 for a 640 x 480 colour frame)."""
-        return round(height * self.aspect), height
+        """(width, height) of the IR images for a colour frame ``height`` rows tall: ``imager_rows``
+        (or the colour frame's) rows at the imagers' own aspect (848 x 480 by default)."""
+        rows = self.imager_rows or height
+        return round(rows * self.aspect), rows
 
     def focal(self, height: int) -> float:
         """The imagers' focal length in pixels at ``height`` rows."""
@@ -285,21 +290,36 @@ def _rays(f: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(a2), np.ascontiguousarray(b2)
 
 
+SURFACE = 0.02  # m: registration keeps the samples within this of a colour pixel's nearest one
+
+
 def register(depth: np.ndarray, imager: Pinhole, offset: float, colour: Pinhole) -> np.ndarray:
     """The left imager's ``depth`` (H, W) m seen from the colour camera ``offset`` m to its right
-    (both looking the same way): each valid pixel moved to the colour pixel it falls in, the nearest
-    surface kept where several fall in one; colour pixels none reaches (beside an edge the imager
-    saw round, or outside its view) have no depth. The imager's pixels are denser than a colour
-    frame of the same height (its field of view is narrower), so a surface leaves no gaps."""
+    (both looking the same way): each valid pixel moved to the colour pixel it falls in; where
+    several fall in one, the nearest surface wins (samples more than ``SURFACE`` behind the nearest
+    are hidden from the colour camera) and, of its samples, the one whose point lands nearest the
+    pixel's centre (no bias from taking the least of several noisy depths). Colour pixels none
+    reaches (beside an edge the imager saw round, or outside its view) have no depth. The imager's
+    pixels are at least as dense as the colour frame's (its field of view is narrower), so a
+    surface leaves no gaps."""
     a, b = imager.rays()
     z = depth.astype(np.float32)
     valid = z > 0
     u, v = colour.pixel(a * z - np.float32(offset), b * z, z)
     ui, vi = np.rint(u).astype(np.int32), np.rint(v).astype(np.int32)
     keep = valid & (ui >= 0) & (vi >= 0) & (ui < colour.width) & (vi < colour.height)
-    out = np.full(colour.height * colour.width, np.inf, np.float32)
-    np.minimum.at(out, vi[keep] * colour.width + ui[keep], z[keep])
-    out[~np.isfinite(out)] = 0.0
+    pixel = (vi * colour.width + ui)[keep]
+    z, u, v, ui, vi = z[keep], u[keep], v[keep], ui[keep], vi[keep]
+    nearest = np.full(colour.height * colour.width, np.inf, np.float32)
+    np.minimum.at(nearest, pixel, z)
+    front = z <= nearest[pixel] + np.float32(SURFACE)
+    pixel, z = pixel[front], z[front]
+    off_centre = ((u - ui) ** 2 + (v - vi) ** 2)[front].astype(np.float32)  # compared in float32 below
+    closest = np.full_like(nearest, np.inf)
+    np.minimum.at(closest, pixel, off_centre)
+    chosen = off_centre == closest[pixel]
+    out = np.zeros(colour.height * colour.width, np.float32)
+    out[pixel[chosen]] = z[chosen]  # ties (equal distances) are left to the last; they agree in place
     return out.reshape(colour.height, colour.width)
 
 

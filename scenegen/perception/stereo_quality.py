@@ -83,8 +83,9 @@ def box_edge(renderer, height: float = 0.8, sensor: ActiveStereo | None = None, 
 
 
 def predicted_rms(z: float, sensor: ActiveStereo, height_px: int = SIZE[1], s: float = SUBPIXEL_RMS) -> float:
-    """``z^2 s / (f B)`` metres: the depth RMS a disparity error of ``s`` px makes at range ``z``."""
-    return z * z * s / (sensor.focal(height_px) * sensor.baseline)
+    """``z^2 s / (f B)`` metres: the depth RMS a disparity error of ``s`` px makes at range ``z`` (``f``
+    the imagers' focal length for a colour frame ``height_px`` rows tall)."""
+    return z * z * s / (sensor.focal(sensor.imager_size(height_px)[1]) * sensor.baseline)
 
 
 def _roi(shape) -> np.ndarray:

@@ -4,8 +4,12 @@ A scene's frames are what the planner observes at its first decision (``observat
 ``observation.CAMERA_SIZE``, from the scene's settled state, under its own lights): RGB, depth and
 the instance segmentation. Reference layouts have no stored images, so they are rendered here; every
 render is cached as one compressed ``.npz`` per scene in a cache folder, keyed by the scene's content
-(``scene_sha256``), the cameras, the size and ``FRAMES_VERSION``, so a second training run, another
-arm or another machine's copy of the cache never renders a scene twice.
+(``scene_sha256``), the cameras, the size, the depth sensor and ``FRAMES_VERSION``, so a second
+training run, another arm or another machine's copy of the cache never renders a scene twice.
+
+The depth is the renderer's (``sensor`` exact) or a depth sensor's (``perception.sensor.SENSORS``:
+``active_stereo``, ``structured_light``; docs/sensor.md), drawn at the decision point
+``<scene sha256>|frames`` so the same scene gives the same frame in any process.
 
 The segmentation is kept for training labels and scoring only: nothing at decision time reads it
 (docs/policy.md).
@@ -40,10 +44,24 @@ class Frames:
     seg: np.ndarray
 
 
-def frames_key(scene: EnvScene, cameras: Sequence[str] = CAMERAS, size: tuple[int, int] = CAMERA_SIZE) -> str:
-    """The cache key of ``scene``'s frames (hex, 32 characters)."""
+def frames_key(
+    scene: EnvScene,
+    cameras: Sequence[str] = CAMERAS,
+    size: tuple[int, int] = CAMERA_SIZE,
+    sensor: str = "exact",
+) -> str:
+    """The cache key of ``scene``'s frames (hex, 32 characters) through ``sensor``."""
     text = f"{scene_sha256(scene)}|{','.join(cameras)}|{size[0]}x{size[1]}|frames{FRAMES_VERSION}"
+    if sensor != "exact":  # exact's keys are as they were before sensors
+        from scenegen.perception.sensor import SENSORS
+
+        text += f"|{SENSORS[sensor].key()}"
     return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def sensor_point(scene: EnvScene) -> str:
+    """The decision point a scene's cached frames are sensed at (seeds the sensor's noise)."""
+    return f"{scene_sha256(scene)}|frames"
 
 
 class FrameCache:
@@ -95,18 +113,25 @@ def _init_worker() -> None:
     init_worker()
 
 
-def _render(scene: EnvScene) -> Frames:
-    """The settled state's frames of ``scene`` in this process's environment."""
+def _render(job: tuple[EnvScene, str]) -> Frames:
+    """The settled state's frames of a scene in this process's environment, through a sensor."""
     from scenegen.env.robosuite_env import worker_env
 
+    scene, sensor = job
     env = worker_env(scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False)
     env.reset_to(scene)
+    if sensor != "exact":
+        from scenegen.perception.sensor import SENSORS
+
+        env.depth_sensor = (SENSORS[sensor], sensor_point(scene))  # cleared by the next reset
     return frames_of(env.camera_observations())
 
 
-def render_missing(scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False) -> int:
-    """Render the frames of the ``scenes`` that ``cache`` does not hold yet (by ``workers``
-    processes) and add them to it; how many were rendered. Nothing is read back."""
+def render_missing(
+    scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False, sensor: str = "exact"
+) -> int:
+    """Render the frames of the ``scenes`` that ``cache`` does not hold yet through ``sensor`` (by
+    ``workers`` processes) and add them to it; how many were rendered. Nothing is read back."""
     from tqdm import tqdm
 
     from scenegen.runner.executors import ordered_map
@@ -114,11 +139,12 @@ def render_missing(scenes: Sequence[EnvScene], cache: Path, workers: int = 1, pr
     store = FrameCache(cache)
     missing = {}
     for scene in scenes:
-        key = frames_key(scene)
+        key = frames_key(scene, sensor=sensor)
         if not store.path(key).exists():
             missing.setdefault(key, scene)
     if missing:
-        rendered = ordered_map(_render, list(missing.values()), workers, _init_worker, ())
+        jobs = [(scene, sensor) for scene in missing.values()]
+        rendered = ordered_map(_render, jobs, workers, _init_worker, ())
         bar = tqdm(rendered, total=len(missing), desc="rendering frames", disable=not progress)
         for key, frames in zip(missing, bar, strict=True):
             store.put(key, frames)
@@ -130,11 +156,11 @@ def render_missing(scenes: Sequence[EnvScene], cache: Path, workers: int = 1, pr
 
 
 def scene_frames(
-    scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False
+    scenes: Sequence[EnvScene], cache: Path, workers: int = 1, progress: bool = False, sensor: str = "exact"
 ) -> Iterator[Frames]:
-    """The frames of every scene, in order: from ``cache``, or rendered by ``workers`` processes
-    and added to it."""
-    render_missing(scenes, cache, workers, progress)
+    """The frames of every scene through ``sensor``, in order: from ``cache``, or rendered by
+    ``workers`` processes and added to it."""
+    render_missing(scenes, cache, workers, progress, sensor)
     store = FrameCache(cache)
     for scene in scenes:
-        yield store.get(frames_key(scene))
+        yield store.get(frames_key(scene, sensor=sensor))

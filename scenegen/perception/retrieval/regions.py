@@ -15,30 +15,34 @@ TABLE_TOP, TABLE_HALF, TABLE_MARGIN = 0.8, (0.4, 0.5), 0.05
 ABOVE_TABLE = 0.0015  # m: a fork lies 3 mm high; simulated depth is exact (a real sensor needs more)
 
 
-def foreground(depth: np.ndarray, robot_mask: np.ndarray, camera) -> tuple[np.ndarray, np.ndarray]:
-    """The frame's foreground, (H, W) bool: the depth pixels whose world points lie above the table
-    (``ABOVE_TABLE``) within its edges and that are not the robot's own pixels; and (H, W) the
-    points' height above the table top in metres."""
+def foreground(
+    depth: np.ndarray, robot_mask: np.ndarray, camera, above: float = ABOVE_TABLE
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame's foreground, (H, W) bool: the depth pixels whose world points lie more than
+    ``above`` metres above the table within its edges and that are not the robot's own pixels; and
+    (H, W) the points' height above the table top in metres."""
     height, width = depth.shape
     everything = np.ones_like(depth, bool)
     points = masked_points(np.where(depth > 0, depth, 1.0), everything, camera).reshape(height, width, 3)
     keep = (
         (depth > 0)
         & ~robot_mask
-        & (points[..., 2] > TABLE_TOP + ABOVE_TABLE)
+        & (points[..., 2] > TABLE_TOP + above)
         & (np.abs(points[..., 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
         & (np.abs(points[..., 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
     )
     return keep, points[..., 2] - TABLE_TOP
 
 
-def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera) -> list[np.ndarray]:
+def candidate_regions(
+    depth: np.ndarray, robot_mask: np.ndarray, camera, above: float = ABOVE_TABLE
+) -> list[np.ndarray]:
     """(H, W) bool masks of the candidate regions of one frame (depth in metres, the robot's own
-    pixels, the scene's :class:`~scenegen.schema.scene.Camera`): the foreground split where
-    neighbouring depths jump by more than ``EDGE``."""
+    pixels, the scene's :class:`~scenegen.schema.scene.Camera`): the foreground (``above``) split
+    where neighbouring depths jump by more than ``EDGE``."""
     import cv2
 
-    keep, _ = foreground(depth, robot_mask, camera)
+    keep, _ = foreground(depth, robot_mask, camera, above)
     edge = np.zeros_like(keep)
     edge[:, 1:] |= np.abs(np.diff(depth, axis=1)) > EDGE
     edge[1:, :] |= np.abs(np.diff(depth, axis=0)) > EDGE
