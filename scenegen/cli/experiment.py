@@ -192,6 +192,19 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
         help="how a decision's mask is judged missed: 2 (default) the overlap rule (IoU >= 0.5 in every "
         "camera that sees the target, nothing where it does not); 1 the centre rule of issue 33's figures",
     )
+    gap.add_argument(
+        "--sensor",
+        choices=("exact", "active_stereo", "structured_light"),
+        default="exact",
+        help="the depth every decision reads, the oracle's too: the renderer's (default) or a depth "
+        "sensor's (active_stereo: a simulated RealSense D415; docs/sensor.md)",
+    )
+    gap.add_argument(
+        "--physics",
+        metavar="NAME",
+        help="what the episodes are simulated under (default: the default physics, dt5; the committed "
+        "figures of docs/policy.md were made under exact)",
+    )
     gap.add_argument("--quiet", action="store_true", help="no progress bars")
     gap.set_defaults(run=perception_gap)
 
@@ -213,9 +226,17 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail(first_line(exc))
     if args.limit is not None:
         panel = {name: scenes[: args.limit] for name, scenes in panel.items()}
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
+
+    physics = args.physics or DEFAULT_PHYSICS
+    try:
+        physics_named(physics)
+    except ValueError as exc:
+        return fail(f"--physics {first_line(exc)}")
     summary = run_gap(
-        args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet, args.perception_rules
-    )
+        args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet, args.perception_rules,
+        args.sensor, physics,
+    )  # fmt: skip
     print(markdown(summary), end="")
     print(f"-> {args.out}")
     return 0

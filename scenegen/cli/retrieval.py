@@ -119,6 +119,13 @@ def _common(parser) -> None:
         help=f"rendered frames, by content (default {DEFAULT_CACHE})",
     )
     parser.add_argument("--workers", type=int, default=1, help="rendering processes (default 1)")
+    parser.add_argument(
+        "--sensor",
+        choices=("exact", "active_stereo", "structured_light"),
+        default="exact",
+        help="the depth the frames hold: the renderer's (default) or a depth sensor's (active_stereo: a "
+        "simulated RealSense D415; docs/sensor.md), cached apart",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -170,7 +177,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
     if not scenes:
         return fail(f"--data {' '.join(map(str, args.data))}: no feasible scene in split {args.split}")
     torch.set_num_threads(1)  # the budget is CPU seconds: one thread wastes none (and fixes the bytes)
-    frames = scene_frames(scenes, args.cache, args.workers, progress=not args.quiet)
+    frames = scene_frames(scenes, args.cache, args.workers, progress=not args.quiet, sensor=args.sensor)
     categories = list(load_catalog().categories)
     described = {
         "sources": [
@@ -179,6 +186,7 @@ def retrieval_train(args: argparse.Namespace) -> int:
         "split": args.split,
         "limit": args.limit,
         **({"shuffle": args.shuffle} if args.shuffle is not None else {}),
+        **({"sensor": args.sensor} if args.sensor != "exact" else {}),  # exact: as before sensors
     }
     if args.design in ("candidates", "instances"):
         from scenegen.perception.retrieval.candidates import train_classifier, train_instances
@@ -270,9 +278,9 @@ def retrieval_eval(args: argparse.Namespace) -> int:
     scenes = scenes[: args.limit] if args.limit is not None else scenes
     if not scenes:
         return fail(f"--scenes {args.scenes}: no scene left after the selection")
-    frames = list(scene_frames(scenes, args.cache, args.workers, progress=not args.quiet))
+    frames = list(scene_frames(scenes, args.cache, args.workers, progress=not args.quiet, sensor=args.sensor))
     try:
-        summary = evaluate_head(args.checkpoint, scenes, frames, args.out)
+        summary = evaluate_head(args.checkpoint, scenes, frames, args.out, sensor=args.sensor)
     except ValueError as exc:  # a category the head does not know
         return fail(first_line(exc))
     print(summary_table(summary), end="")

@@ -16,8 +16,9 @@ import time
 from collections import Counter
 from pathlib import Path
 
+from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
 from scenegen.experiment.closed_loop import Cost, Workers, evaluate_policies
-from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore
+from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore, Variant
 from scenegen.policy.success_table import wilson
 from scenegen.store.batch import atomic_write
 
@@ -62,10 +63,13 @@ def run_gap(
     workers: int = 1,
     progress: bool = True,
     rules: int | None = None,
+    sensor: str = "exact",
+    physics: str = DEFAULT_PHYSICS,
 ) -> dict:
     """Evaluate the policy at ``checkpoint`` on ``panel`` (panel name -> EnvScenes, each with its
     ``panel_id``) through ``retrieval`` and through the oracle, the head's decisions scored by the
-    perception rules' version ``rules`` (default: the current one); write and return the summary."""
+    perception rules' version ``rules`` (default: the current one), every depth frame through
+    ``sensor`` (exact: the renderer's), simulated under ``physics``; write and return the summary."""
     from tqdm import tqdm
 
     from scenegen.core.files import folder_sha256
@@ -86,9 +90,12 @@ def run_gap(
         "retrieval_sha256": folder_sha256(Path(retrieval)),  # the head: its whole folder
         "perception_rules": PERCEPTION_RULES if rules is None else rules,
         "layouts": len(scenes),
+        **({"sensor": sensor} if sensor != "exact" else {}),
+        "physics": physics_named(physics).key(),
         "settings": {},
     }
-    with Workers(workers) as pool:
+    variant = NOMINAL if sensor == "exact" else Variant(f"sensor_{sensor}", 1.0, sensor)
+    with Workers(workers, physics) as pool:
         for setting, head in (("learned", retrieval), ("oracle", None)):
             cost = Cost()
             began = time.monotonic()
@@ -98,7 +105,7 @@ def run_gap(
                     scenes,
                     store,
                     observations,
-                    NOMINAL,
+                    variant,
                     pool,
                     lambda _, bar=bar: bar.update(),
                     head,

@@ -163,7 +163,7 @@ class Shift(_Strict):
 
     name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
     light_scale: float = Field(1.0, gt=0, le=3)
-    sensor: Literal["structured_light"] | None = None
+    sensor: Literal["structured_light", "active_stereo"] | None = None
 
 
 class PlanGridSettings(_Strict):

@@ -122,3 +122,17 @@ def test_in_the_environment_the_depth_is_the_sensors(demo_batch: Path):
     error = np.abs(sensed[both] - exact[both])
     assert np.median(error) < 0.01 and (error > 0).mean() > 0.9  # near, and not the exact frame
     assert (again > 0).sum() == pytest.approx((sensed > 0).sum(), rel=0.05)
+
+
+def test_frames_through_the_sensor_are_cached_apart_from_the_exact_ones(demo_batch: Path, tmp_path: Path):
+    from scenegen.env.scenes import batch_scenes
+    from scenegen.perception.retrieval.frames import frames_key, render_missing, scene_frames
+
+    scenes = batch_scenes(demo_batch)[:1]
+    (exact,) = scene_frames(scenes, tmp_path)
+    (sensed,) = scene_frames(scenes, tmp_path, sensor="active_stereo")
+    assert frames_key(scenes[0]) != frames_key(scenes[0], sensor="active_stereo")
+    assert np.array_equal(exact.seg, sensed.seg) and np.array_equal(exact.rgb, sensed.rgb)
+    seen = (exact.depth > 0) & (exact.depth < 2.0)
+    assert (sensed.depth[seen] == 0).any() and not np.array_equal(exact.depth, sensed.depth)
+    assert render_missing(scenes, tmp_path, sensor="active_stereo") == 0  # cached: nothing rendered again

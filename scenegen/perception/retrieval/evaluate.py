@@ -153,15 +153,21 @@ def summarise(rows: Sequence[dict]) -> dict:
 
 
 def evaluate_head(
-    checkpoint: Path, scenes: Sequence[EnvScene], frames: Sequence[Frames], out: Path | None = None
+    checkpoint: Path,
+    scenes: Sequence[EnvScene],
+    frames: Sequence[Frames],
+    out: Path | None = None,
+    sensor: str = "exact",
 ) -> dict:
-    """Metrics of the head at ``checkpoint`` (either design) on ``scenes``; with ``out``:
-    ``images.jsonl`` (one row per scene, every camera), ``summary.json`` and ``summary.md`` there."""
+    """Metrics of the head at ``checkpoint`` (either design) on ``scenes`` (``frames``: theirs, their
+    depth through ``sensor``); with ``out``: ``images.jsonl`` (one row per scene, every camera),
+    ``summary.json`` and ``summary.md`` there."""
     from scenegen.perception.retrieval.perceive import RetrievalPerception
 
     predict = RetrievalPerception.load(checkpoint).predict
     rows = [scene_metrics(predict, s, f) for s, f in zip(scenes, frames, strict=True)]
-    summary = {"checkpoint": str(checkpoint), **summarise(rows)}
+    summary = {"checkpoint": str(checkpoint), **({"sensor": sensor} if sensor != "exact" else {})}
+    summary |= summarise(rows)
     if out is not None:
         from scenegen.store.batch import atomic_write
 
