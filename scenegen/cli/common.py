@@ -88,3 +88,18 @@ def device_error(args) -> str | None:
     except ValueError as exc:
         return str(exc)
     return None
+
+
+SENSOR_CHOICES = ("exact", "active_stereo", "structured_light")  # perception.sensor.SENSOR_NAMES
+
+
+def add_sensor_argument(parser, what: str, default: str | None = "exact") -> None:
+    """``--sensor NAME``: the depth ``what`` holds, the renderer's (exact) or a depth sensor's
+    (docs/sensor.md). Names only: the sensors load with the command."""
+    parser.add_argument(
+        "--sensor",
+        choices=SENSOR_CHOICES,
+        default=default,
+        help=f"{what}: exact, the renderer's depth; active_stereo, a simulated RealSense D415 (about 0.26 "
+        "CPU-s a frame); structured_light, the parametric noise (docs/sensor.md)",
+    )

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from scenegen.cli.common import fail, first_line
+from scenegen.cli.common import add_sensor_argument, fail, first_line
 
 STAGES = ("sources", "labels", "training")
 
@@ -192,13 +192,7 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
         help="how a decision's mask is judged missed: 2 (default) the overlap rule (IoU >= 0.5 in every "
         "camera that sees the target, nothing where it does not); 1 the centre rule of issue 33's figures",
     )
-    gap.add_argument(
-        "--sensor",
-        choices=("exact", "active_stereo", "structured_light"),
-        default="exact",
-        help="the depth every decision reads, the oracle's too: the renderer's (default) or a depth "
-        "sensor's (active_stereo: a simulated RealSense D415; docs/sensor.md)",
-    )
+    add_sensor_argument(gap, "the depth every decision reads, the oracle's too (default exact)")
     gap.add_argument(
         "--physics",
         metavar="NAME",

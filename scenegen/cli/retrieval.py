@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import add_device_argument, device_error, fail, first_line
+from scenegen.cli.common import add_device_argument, add_sensor_argument, device_error, fail, first_line
 
 DEFAULT_CACHE = Path("runs/cache/frames")
 SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py)
@@ -119,13 +119,7 @@ def _common(parser) -> None:
         help=f"rendered frames, by content (default {DEFAULT_CACHE})",
     )
     parser.add_argument("--workers", type=int, default=1, help="rendering processes (default 1)")
-    parser.add_argument(
-        "--sensor",
-        choices=("exact", "active_stereo", "structured_light"),
-        default="exact",
-        help="the depth the frames hold: the renderer's (default) or a depth sensor's (active_stereo: a "
-        "simulated RealSense D415; docs/sensor.md), cached apart",
-    )
+    add_sensor_argument(parser, "the frames' depth, cached apart per sensor (default exact)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import add_backend_arguments, backend_from, fail
+from scenegen.cli.common import add_backend_arguments, add_sensor_argument, backend_from, fail
 
 
 def add_commands(sub) -> None:
@@ -46,12 +46,11 @@ def add_commands(sub) -> None:
     )
     add_backend_arguments(gen)
     gen.add_argument("--no-render", action="store_true", help="skip rendering (no GL needed; no sensor)")
-    gen.add_argument(
-        "--sensor",
-        choices=("exact", "active_stereo", "structured_light"),
-        help="a depth sensor's frames stored beside the exact depth, <cam>_depth_<sensor>.png, instead of "
-        "the recipe's (default exact: none; active_stereo: a simulated RealSense D415, about 0.4 CPU-s "
-        "a 640x480 frame; docs/sensor.md)",
+    add_sensor_argument(
+        gen,
+        "a depth sensor's frames stored beside the exact depth, <cam>_depth_<sensor>.png, instead of "
+        "the recipe's sensor (whose default, exact, stores none)",
+        default=None,
     )
     gen.add_argument(
         "--check",

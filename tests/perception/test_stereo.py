@@ -136,3 +136,14 @@ def test_frames_through_the_sensor_are_cached_apart_from_the_exact_ones(demo_bat
     seen = (exact.depth > 0) & (exact.depth < 2.0)
     assert (sensed.depth[seen] == 0).any() and not np.array_equal(exact.depth, sensed.depth)
     assert render_missing(scenes, tmp_path, sensor="active_stereo") == 0  # cached: nothing rendered again
+
+
+def test_the_commands_and_recipes_name_every_sensor():
+    import typing
+
+    from scenegen.cli.common import SENSOR_CHOICES
+    from scenegen.perception.sensor import SENSOR_NAMES
+    from scenegen.runner.config import PipelineConfig
+
+    recipe = typing.get_args(PipelineConfig.model_fields["sensor"].annotation)
+    assert set(SENSOR_CHOICES) == set(SENSOR_NAMES) == set(recipe)
