@@ -74,14 +74,18 @@ def frame_rows(scene, observations: dict, sensed: dict, cameras) -> list[dict]:
             "noisy, holes filled": mended,
             "noisy, holes filled, median 5": median5(mended),
         }
+        rules = {name: {} for name in variants}
         smooth = median5(mended)
         for mm in ABOVE_MM:  # the foreground's height threshold, for a sensor whose depth is not exact
             variants[f"noisy, filled, median 5, above {mm} mm"] = smooth
+            rules[f"noisy, filled, median 5, above {mm} mm"] = {"above": mm / 1000}
+        for mm in ABOVE_MM:  # ... with the robot's mask widened and the table's plane fitted per frame
+            name = f"noisy, filled, median 5, above {mm} mm, robot +4 px, table fitted"
+            variants[name] = smooth
+            rules[name] = {"above": mm / 1000, "robot_margin": 4, "table_fit": True}
         for name, depth in variants.items():
-            above = float(name.rsplit("above ", 1)[1].split()[0]) / 1000 if "above" in name else None
-            above = regions.ABOVE_TABLE if above is None else above
-            keep, _ = regions.foreground(depth, robot, camera, above)
-            found = regions.candidate_regions(depth, robot, camera, above)
+            keep, _ = regions.foreground(depth, robot, camera, **rules[name])
+            found = regions.candidate_regions(depth, robot, camera, **rules[name])
             inside = np.any(found, axis=0) if found else np.zeros_like(keep)
             rows.append(
                 {
@@ -99,9 +103,9 @@ def frame_rows(scene, observations: dict, sensed: dict, cameras) -> list[dict]:
 def main(per_panel: int, sensor: str = "structured_light") -> dict:
     from scenegen.env.robosuite_env import SceneEnv
     from scenegen.perception.observation import CAMERA_SIZE, CAMERAS
-    from scenegen.perception.sensor import SENSORS
     from scenegen.policy.labels import HORIZON
     from scenegen.policy.panels_v2 import load_panels_v2, panel_id, panel_scenes
+    from scenegen.render.sensor import SENSORS
 
     panels = load_panels_v2()
     chosen = {"validation": {p: panels["validation"][p][:per_panel] for p in RARE}}  # never the test side

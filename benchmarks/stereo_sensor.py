@@ -31,8 +31,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from scenegen.perception import stereo_quality as quality  # noqa: E402
-from scenegen.perception.stereo import ActiveStereo  # noqa: E402
+from scenegen.render import stereo_quality as quality  # noqa: E402
+from scenegen.render.stereo import ActiveStereo  # noqa: E402
 
 SIZE = (640, 480)
 
@@ -80,7 +80,7 @@ def layouts(n: int):
 
 
 def scene_figures(renderer, sensor: ActiveStereo, scenes, figure: Path) -> dict:
-    from scenegen.perception.sensor import SENSORS, Sight
+    from scenegen.render.sensor import SENSORS, Sight
 
     seen, filled, within = defaultdict(int), defaultdict(int), defaultdict(int)
     cpu = defaultdict(float)

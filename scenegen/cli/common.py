@@ -90,7 +90,7 @@ def device_error(args) -> str | None:
     return None
 
 
-SENSOR_CHOICES = ("exact", "active_stereo", "structured_light")  # perception.sensor.SENSOR_NAMES
+SENSOR_CHOICES = ("exact", "active_stereo", "structured_light")  # render.sensor.SENSOR_NAMES
 
 
 def add_sensor_argument(parser, what: str, default: str | None = "exact") -> None:

@@ -31,8 +31,8 @@ from scenegen.core.layout import TABLE_SIZE, TABLE_TOP_Z
 from scenegen.env.control import lean_control
 from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_named
 from scenegen.env.scenes import EnvScene, target_category
-from scenegen.perception.sensor import Sight
 from scenegen.render.offscreen import MAX_SIZE, SceneRenderer
+from scenegen.render.sensor import Sight
 from scenegen.sim import world
 
 DEFAULT_CONTROLLER = "BASIC"  # robosuite's composite controller: OSC_POSE arm + gripper, 7-D action
@@ -96,7 +96,7 @@ class SceneEnv(ManipulationEnv):
         self._robot_spec: mujoco.MjSpec | None = None
         self._renderer: SceneRenderer | None = None
         # (sensor, decision point): depth frames as that sensor returns them there (None: exact;
-        # perception/sensor.py); cleared by every reset, set by the caller per decision point
+        # render/sensor.py); cleared by every reset, set by the caller per decision point
         self.depth_sensor: tuple | None = None
         self._check_cameras(scene)
         super().__init__(
@@ -211,8 +211,17 @@ class SceneEnv(ManipulationEnv):
         model = self.sim.model._model
         self.target_body_id = model.body(self.scene.target).id
 
+    def _update_observables(self, force=False):
+        # robosuite samples each observable when its own clock, advanced by the physics step at every
+        # substep, passes 1/control_freq; under a 5 ms step ten steps add up to 0.04999... s, so the
+        # sample fell a substep late and an observation returned the state of the step before (up to
+        # 0.047 rad off, measured). Observables are sampled here once, at the end of each control step
+        # (_get_observations), the instant they described under the 2 ms step; the substeps skip them.
+        if force:
+            super()._update_observables(force=True)
+
     def _get_observations(self, force_update=False):
-        obs = super()._get_observations(force_update=force_update)
+        obs = super()._get_observations(force_update=True)  # now: see _update_observables
         if self.cameras and self.render_each_step:
             obs.update(self.camera_observations())
         obs["target_id"] = np.array([self.scene.target_id], dtype=np.int32)

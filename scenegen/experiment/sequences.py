@@ -38,7 +38,7 @@ from scenegen.store.batch import atomic_write, recover_jsonl
 class Variant:
     """What the cameras see: ``nominal``, a shift of the scene's lighting (every light's intensity
     and the ambient term scaled by ``light_scale``), and/or a depth ``sensor``'s errors (a name of
-    ``perception.sensor.SENSORS``; the noise drawn per decision point and camera, :meth:`sense`).
+    ``render.sensor.SENSORS``; the noise drawn per decision point and camera, :meth:`sense`).
     Lighting changes only the colour frames (a head's predictions, and the policy's input); a sensor
     changes the depth every planner reads, the oracle's too. The store keys a sequence by the plans
     executed, so one PathStore serves every variant all the same."""
@@ -51,7 +51,7 @@ class Variant:
         """Set ``env``'s depth to this variant's sensor at the decision point ``point`` (after a
         reset, which clears it; a no-op without a sensor)."""
         if self.sensor is not None:
-            from scenegen.perception.sensor import SENSORS
+            from scenegen.render.sensor import SENSORS
 
             if not point:
                 raise ValueError(f"variant {self.name}: a sensor's noise needs the decision point")
@@ -193,7 +193,7 @@ class ObservationStore:
     def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
         shown = f"{variant.name}:{variant.light_scale}"
         if variant.sensor is not None:
-            from scenegen.perception.sensor import SENSORS
+            from scenegen.render.sensor import SENSORS
 
             shown += f":{SENSORS[variant.sensor].key()}"
         text = f"{path_key(sha, tokens)}|{seen}|{shown}|{inputs}"

@@ -159,7 +159,7 @@ class HeadSettings(_Strict):
 
 class Shift(_Strict):
     """One condition the perturbed arms are also evaluated under (version 2): the lights scaled by
-    ``light_scale`` and/or a depth ``sensor``'s errors (perception/sensor.py), at evaluation only."""
+    ``light_scale`` and/or a depth ``sensor``'s errors (render/sensor.py), at evaluation only."""
 
     name: str = Field(pattern=r"^[a-z][a-z0-9_]*$")
     light_scale: float = Field(1.0, gt=0, le=3)

@@ -147,7 +147,7 @@ def sensor_entry(config) -> dict[str, str] | None:
     of what decides its frames); None for exact depth only."""
     if not config.render or config.sensor == "exact":
         return None
-    from scenegen.perception.sensor import SENSORS
+    from scenegen.render.sensor import SENSORS
 
     return {"name": config.sensor, "version": SENSORS[config.sensor].key()}
 

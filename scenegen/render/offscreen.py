@@ -99,7 +99,7 @@ class View:
     """A camera that is not in the model: ``pos`` (3,) world metres, ``xmat`` (3, 3) camera-to-world
     rotation (MuJoCo's convention: x right, y up, looking along -z), ``fovy`` vertical field of view
     (degrees). Rendered by overriding the scene's GL camera, so the model (and a stored scene.xml's
-    sha256) stays as it is; a simulated sensor's imagers are views (perception/stereo.py)."""
+    sha256) stays as it is; a simulated sensor's imagers are views (render/stereo.py)."""
 
     pos: np.ndarray
     xmat: np.ndarray

@@ -78,7 +78,7 @@ class PipelineConfig(BaseModel):
     # Share of the robot's visual-mesh triangles drawn (quadric decimation, once per worker; the
     # simulated model is unchanged); None: the meshes as shipped. Recorded in scene.json `render`.
     robot_mesh_detail: float | None = Field(None, gt=0.0, le=1.0)
-    # A depth sensor's frames stored beside the exact depth (perception/sensor.py SENSORS; needs render).
+    # A depth sensor's frames stored beside the exact depth (render/sensor.py SENSORS; needs render).
     sensor: Literal["exact", "active_stereo", "structured_light"] = "exact"
     # User asset catalogs (``scenegen assets add``), each a catalog.yaml or its folder, relative to the
     # working directory; merged after the bundled one. Empty: the bundled catalog only.

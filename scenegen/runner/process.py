@@ -193,7 +193,7 @@ def _render(
     for cam, frame in zip(proposal.cameras, frames, strict=True):
         images.update(frames_to_files(cam.name, frame))
     if sensor != "exact":
-        from scenegen.perception.sensor import SENSORS, Sight
+        from scenegen.render.sensor import SENSORS, Sight
 
         for cam, frame in zip(proposal.cameras, frames, strict=True):
             sight = Sight(process_renderer(), model, data, cam.name, (cam.width, cam.height), segmentation,

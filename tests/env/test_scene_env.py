@@ -99,7 +99,8 @@ def test_a_random_rollout_of_200_steps_does_not_diverge(env, scenes, kind):
     assert np.abs(data.qvel).max() < 50.0  # rad/s or m/s: nothing flew off
     for obj in scene.objects:
         assert np.linalg.norm(data.xpos[model.body(obj.name).id]) < 3.0, obj.name  # still near the table
-    assert 0.3 < np.linalg.norm(obs["robot0_eef_pos"] - data.xpos[model.body("robot0_base").id]) < 1.2
+    # within the arm's reach and not inside its base (a folded Panda holds its hand 0.25-0.3 m from it)
+    assert 0.2 < np.linalg.norm(obs["robot0_eef_pos"] - data.xpos[model.body("robot0_base").id]) < 1.2
 
 
 def test_resetting_into_another_scene_leaks_nothing(env, scenes):

@@ -90,23 +90,27 @@ def test_only_labels_of_the_current_primitives_seen_through_the_cameras_train_it
     from scenegen.policy.train import current, labelled_examples
 
     sha = scene_sha256(batch_scenes(demo_batch)[0])
+    from scenegen.env.physics import DEFAULT_PHYSICS, PHYSICS
+
     row = {
         "scene_sha256": sha,
         "primitive": "top_grasp",
         "success": True,
         "observation": "rgbd",
         "duration": 9.0,
+        "physics": PHYSICS[DEFAULT_PHYSICS].key(),
     }
     version = PRIMITIVES["top_grasp"].version
     rows = [
         row | {"primitive_version": version - 1},
         row | {"primitive_version": version, "observation": "state"},
         row | {"primitive_version": version, "duration": 50.0},  # a success the time limit cannot judge
+        row | {"primitive_version": version, "physics": PHYSICS["exact"].key()},  # another physics
     ]
     assert not any(map(current, rows)) and current(row | {"primitive_version": version})
     pq.write_table(pa.Table.from_pylist(rows), tmp_path / "stale.parquet")
     with pytest.raises(
-        ValueError, match="3 rows of older primitive versions, another observation or an unjudged time"
+        ValueError, match="4 rows of older primitive versions, another observation or physics, or an unjudged"
     ):
         labelled_examples([(demo_batch, tmp_path / "stale.parquet")], split=None)
 

@@ -57,7 +57,7 @@ def batch(recipe: Path, tmp_path_factory) -> Path:
 
 
 def test_each_camera_stores_the_sensors_depth_beside_the_exact_one(batch: Path):
-    from scenegen.perception.sensor import SENSORS
+    from scenegen.render.sensor import SENSORS
 
     manifest = (batch / "manifest.yaml").read_text()
     assert f"name: {SENSOR}" in manifest

@@ -7,7 +7,7 @@ render is cached as one compressed ``.npz`` per scene in a cache folder, keyed b
 (``scene_sha256``), the cameras, the size, the depth sensor and ``FRAMES_VERSION``, so a second
 training run, another arm or another machine's copy of the cache never renders a scene twice.
 
-The depth is the renderer's (``sensor`` exact) or a depth sensor's (``perception.sensor.SENSORS``:
+The depth is the renderer's (``sensor`` exact) or a depth sensor's (``render.sensor.SENSORS``:
 ``active_stereo``, ``structured_light``; docs/sensor.md), drawn at the decision point
 ``<scene sha256>|frames`` so the same scene gives the same frame in any process.
 
@@ -53,7 +53,7 @@ def frames_key(
     """The cache key of ``scene``'s frames (hex, 32 characters) through ``sensor``."""
     text = f"{scene_sha256(scene)}|{','.join(cameras)}|{size[0]}x{size[1]}|frames{FRAMES_VERSION}"
     if sensor != "exact":  # exact's keys are as they were before sensors
-        from scenegen.perception.sensor import SENSORS
+        from scenegen.render.sensor import SENSORS
 
         text += f"|{SENSORS[sensor].key()}"
     return hashlib.sha256(text.encode()).hexdigest()[:32]
@@ -121,7 +121,7 @@ def _render(job: tuple[EnvScene, str]) -> Frames:
     env = worker_env(scene, cameras=CAMERAS, camera_size=CAMERA_SIZE, render_each_step=False)
     env.reset_to(scene)
     if sensor != "exact":
-        from scenegen.perception.sensor import SENSORS
+        from scenegen.render.sensor import SENSORS
 
         env.depth_sensor = (SENSORS[sensor], sensor_point(scene))  # cleared by the next reset
     return frames_of(env.camera_observations())

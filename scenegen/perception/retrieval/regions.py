@@ -16,33 +16,63 @@ ABOVE_TABLE = 0.0015  # m: a fork lies 3 mm high; simulated depth is exact (a re
 
 
 def foreground(
-    depth: np.ndarray, robot_mask: np.ndarray, camera, above: float = ABOVE_TABLE
+    depth: np.ndarray,
+    robot_mask: np.ndarray,
+    camera,
+    above: float = ABOVE_TABLE,
+    robot_margin: int = 0,
+    table_fit: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The frame's foreground, (H, W) bool: the depth pixels whose world points lie more than
     ``above`` metres above the table within its edges and that are not the robot's own pixels; and
-    (H, W) the points' height above the table top in metres."""
+    (H, W) the points' height above the table top in metres. For a sensor's depth (docs/sensor.md):
+    ``robot_margin`` px around the robot's pixels are the robot's too (its measured depth spreads past
+    its rendered mask), and ``table_fit`` measures heights from a plane fitted to the frame's table
+    points (the sensor's depth of the table is tilted and offset a little, not the true top)."""
     height, width = depth.shape
     everything = np.ones_like(depth, bool)
     points = masked_points(np.where(depth > 0, depth, 1.0), everything, camera).reshape(height, width, 3)
-    keep = (
+    if robot_margin > 0:
+        import cv2
+
+        size = 2 * robot_margin + 1
+        robot_mask = cv2.dilate(robot_mask.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+    on_table = (
         (depth > 0)
         & ~robot_mask
-        & (points[..., 2] > TABLE_TOP + above)
         & (np.abs(points[..., 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
         & (np.abs(points[..., 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
     )
-    return keep, points[..., 2] - TABLE_TOP
+    top = np.full((height, width), TABLE_TOP)
+    if table_fit:
+        top = _table_plane(points, on_table)
+    lift = points[..., 2] - top
+    return on_table & (lift > above), lift
 
 
-def candidate_regions(
-    depth: np.ndarray, robot_mask: np.ndarray, camera, above: float = ABOVE_TABLE
-) -> list[np.ndarray]:
+def _table_plane(points: np.ndarray, on_table: np.ndarray, band: float = 0.02) -> np.ndarray:
+    """(H, W) the height of the plane fitted (least squares, twice: the second time without the
+    points more than 2.5 sigma off the first) to the points within ``band`` m of the table top, at
+    every pixel's (x, y); the true top where too few points are near it."""
+    near = on_table & (np.abs(points[..., 2] - TABLE_TOP) < band)
+    if near.sum() < 100:
+        return np.full(points.shape[:2], TABLE_TOP)
+    xyz = points[near]
+    design = np.c_[xyz[:, 0], xyz[:, 1], np.ones(len(xyz))]
+    coef, *_ = np.linalg.lstsq(design, xyz[:, 2], rcond=None)
+    residual = xyz[:, 2] - design @ coef
+    inliers = np.abs(residual) <= 2.5 * residual.std()
+    coef, *_ = np.linalg.lstsq(design[inliers], xyz[inliers, 2], rcond=None)
+    return coef[0] * points[..., 0] + coef[1] * points[..., 1] + coef[2]
+
+
+def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera, **rule) -> list[np.ndarray]:
     """(H, W) bool masks of the candidate regions of one frame (depth in metres, the robot's own
-    pixels, the scene's :class:`~scenegen.schema.scene.Camera`): the foreground (``above``) split
-    where neighbouring depths jump by more than ``EDGE``."""
+    pixels, the scene's :class:`~scenegen.schema.scene.Camera`): the foreground (``rule``: its
+    options, :func:`foreground`) split where neighbouring depths jump by more than ``EDGE``."""
     import cv2
 
-    keep, _ = foreground(depth, robot_mask, camera, above)
+    keep, _ = foreground(depth, robot_mask, camera, **rule)
     edge = np.zeros_like(keep)
     edge[:, 1:] |= np.abs(np.diff(depth, axis=1)) > EDGE
     edge[1:, :] |= np.abs(np.diff(depth, axis=0)) > EDGE

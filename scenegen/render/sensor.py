@@ -2,7 +2,7 @@
 
 Two sensors, by name in :data:`SENSORS`: ``structured_light``, a parametric noise model laid over the
 exact depth (below), and ``active_stereo``, a RealSense-like sensor simulated from how it works
-(perception/stereo.py: an IR dot pattern, two imagers, semi-global matching). Both answer
+(render/stereo.py: an IR dot pattern, two imagers, semi-global matching). Both answer
 ``measure(sight, point)``: the depth (H, W) metres of one camera's frame (:class:`Sight`: the
 renderer, the model and data at that instant, the camera and its exact frames) at the decision point
 ``point``, whose string (with the camera's name) seeds the sensor's randomness.
@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from scenegen.perception.stereo import ActiveStereo
+from scenegen.render.stereo import ActiveStereo
 
 SEEDING = 1  # the version of how a frame's noise is drawn from (decision point, camera)
 

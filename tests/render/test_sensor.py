@@ -1,4 +1,4 @@
-"""The structured-light sensor model (perception/sensor.py): noise that grows with range as stated,
+"""The structured-light sensor model (render/sensor.py): noise that grows with range as stated,
 pixels missing only near depth edges and at the stated share, drawn from the decision point and the
 camera alone; and, in closed loop, the head, the planner and the oracle all read the noisy depth."""
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenegen.perception.sensor import StructuredLight
+from scenegen.render.sensor import StructuredLight
 
 ROOT = Path(__file__).resolve().parents[2] / "assets"
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.perception.stereo import ActiveStereo, Pinhole
+from scenegen.render.stereo import ActiveStereo, Pinhole
 
 SUBPIXEL_RMS = 0.08  # px: a D415's typical subpixel RMS error on a textured target (Intel's tuning
 # guide, "Tuning depth cameras for best performance", Grunnet-Jepsen, Sweetser, Woodfill)

@@ -1,4 +1,4 @@
-"""The simulated active stereo sensor (perception/stereo.py) measured as a real one is: the plane RMS
+"""The simulated active stereo sensor (render/stereo.py) measured as a real one is: the plane RMS
 of a bare table against a D415's published subpixel error at three ranges (a sensor with much more or
 no image noise fails the same bound), the bare table's fill rate, the depth-less bands beside an
 occluding edge against the arrangement's prediction; frames drawn from the point and camera alone,
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scenegen.perception import stereo_quality as quality
-from scenegen.perception.stereo import ActiveStereo
+from scenegen.render import stereo_quality as quality
+from scenegen.render.stereo import ActiveStereo
 
 RANGES = (0.8, 1.2, 1.6)  # m: the cameras here look from about 1.4 m
 
@@ -104,7 +104,7 @@ def test_a_view_renders_as_the_same_camera_of_the_model_would(renderer):
 def test_in_the_environment_the_depth_is_the_sensors(demo_batch: Path):
     from scenegen.env.robosuite_env import SceneEnv
     from scenegen.env.scenes import batch_scenes
-    from scenegen.perception.sensor import SENSORS
+    from scenegen.render.sensor import SENSORS
 
     scene = batch_scenes(demo_batch)[0]
     env = SceneEnv(scene, cameras=["front"], camera_size=(320, 240), render_each_step=False)
@@ -142,7 +142,7 @@ def test_the_commands_and_recipes_name_every_sensor():
     import typing
 
     from scenegen.cli.common import SENSOR_CHOICES
-    from scenegen.perception.sensor import SENSOR_NAMES
+    from scenegen.render.sensor import SENSOR_NAMES
     from scenegen.runner.config import PipelineConfig
 
     recipe = typing.get_args(PipelineConfig.model_fields["sensor"].annotation)

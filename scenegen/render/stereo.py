@@ -103,7 +103,7 @@ class ActiveStereo:
         return int(np.ceil(d / 16.0)) * 16
 
     def measure(self, sight, point: str) -> np.ndarray:
-        """The depth of ``sight``'s frame (a ``perception.sensor.Sight``) at ``point``: :meth:`sense`."""
+        """The depth of ``sight``'s frame (a ``render.sensor.Sight``) at ``point``: :meth:`sense`."""
         return self.sense(sight.renderer, sight.model, sight.data, sight.camera, sight.size, sight.ids,
                           point, rgb=sight.rgb)  # fmt: skip
 
