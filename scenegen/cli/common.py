@@ -90,16 +90,25 @@ def device_error(args) -> str | None:
     return None
 
 
-SENSOR_CHOICES = ("exact", "active_stereo", "structured_light")  # render.sensor.SENSOR_NAMES
-
-
 def add_sensor_argument(parser, what: str, default: str | None = "exact") -> None:
     """``--sensor NAME``: the depth ``what`` holds, the renderer's (exact) or a depth sensor's
-    (docs/sensor.md). Names only: the sensors load with the command."""
+    (docs/sensor.md)."""
+    from scenegen.render.sensor import SENSOR_NAMES  # numpy only: no MuJoCo, no GL
+
     parser.add_argument(
         "--sensor",
-        choices=SENSOR_CHOICES,
+        choices=SENSOR_NAMES,
         default=default,
-        help=f"{what}: exact, the renderer's depth; active_stereo, a simulated RealSense D415 (about 0.26 "
-        "CPU-s a frame); structured_light, the parametric noise (docs/sensor.md)",
+        help=f"{what}: exact, the renderer's depth; active_stereo, a simulated RealSense D415 (about 0.33 "
+        "CPU-s a 640x480 frame); structured_light, the parametric noise (docs/sensor.md)",
     )
+
+
+def physics_from(args) -> str:
+    """The control-loop physics ``--physics`` names (default: the default physics); ValueError names
+    the choices."""
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
+
+    name = args.physics or DEFAULT_PHYSICS
+    physics_named(name)
+    return name

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from scenegen.cli.common import add_sensor_argument, fail, first_line
+from scenegen.cli.common import add_sensor_argument, fail, first_line, physics_from
 
 STAGES = ("sources", "labels", "training")
 
@@ -220,11 +220,8 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail(first_line(exc))
     if args.limit is not None:
         panel = {name: scenes[: args.limit] for name, scenes in panel.items()}
-    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
-
-    physics = args.physics or DEFAULT_PHYSICS
     try:
-        physics_named(physics)
+        physics = physics_from(args)
     except ValueError as exc:
         return fail(f"--physics {first_line(exc)}")
     summary = run_gap(

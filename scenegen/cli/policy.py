@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenegen.cli.common import add_backend_arguments, backend_from, fail, first_line
+from scenegen.cli.common import add_backend_arguments, backend_from, fail, first_line, physics_from
 from scenegen.perception.retrieval import DEFAULT_HEAD
 
 
@@ -211,7 +211,7 @@ def success_table(args: argparse.Namespace) -> int:
         except (OSError, ValueError) as exc:
             return fail(f"{path}: not a labels Parquet file ({first_line(exc)})")
     try:
-        rows, stale = current_rows(tables, args.observation, _physics(args))
+        rows, stale = current_rows(tables, args.observation, physics_from(args))
     except ValueError as exc:
         return fail(f"--physics {first_line(exc)}")
     except KeyError as exc:
@@ -226,7 +226,7 @@ def success_table(args: argparse.Namespace) -> int:
         named = ", ".join(map(str, args.labels))
         return fail(
             f"{named}: no rows of the current primitives ({args.observation} observation, "
-            f"{_physics(args)} physics); rows of another physics: name it with --physics"
+            f"{physics_from(args)} physics); rows of another physics: name it with --physics"
         )
     print(markdown_table(rows, args.min_cell))
     found = differs_from_nominal(rows, args.min_cell)
@@ -246,7 +246,7 @@ def policy_train(args: argparse.Namespace) -> int:
         return fail("--steps and --batch-size must be at least 1, --alpha at least 0")
     split = None if args.split == "all" else args.split
     try:
-        physics = _physics(args)
+        physics = physics_from(args)
     except ValueError as exc:
         return fail(f"--physics {first_line(exc)}")
     try:
@@ -271,15 +271,6 @@ def policy_train(args: argparse.Namespace) -> int:
         f"{sum(last) / len(last):.4f} ({summary['cpu_seconds']} CPU-s) -> {args.out}"
     )
     return 0
-
-
-def _physics(args: argparse.Namespace) -> str:
-    """The physics named by ``--physics`` (default: the default); ValueError names the choices."""
-    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
-
-    name = args.physics or DEFAULT_PHYSICS
-    physics_named(name)
-    return name
 
 
 def policy_eval(args: argparse.Namespace) -> int:

@@ -160,8 +160,8 @@ def render_settings(config: PipelineConfig) -> dict | None:
     settings = dict(RENDER_SETTINGS)  # as before a setting existed when it is left at its default
     if config.robot_mesh_detail is not None:
         settings["robot_mesh_detail"] = config.robot_mesh_detail
-    if config.sensor != "exact":
-        settings["sensor"] = sensor_entry(config)  # the sensor and what decides its frames
+    if (sensor := sensor_entry(config)) is not None:
+        settings["sensor"] = sensor  # the sensor and what decides its frames
     return settings
 
 
