@@ -6,6 +6,8 @@ scores exist is not trained again.
 
     .venv/bin/python benchmarks/retrieval_curves.py --workers 2     # ~2 h on 2 cores
     .venv/bin/python benchmarks/retrieval_curves.py --sizes 30 100 --seeds 0 --designs instances
+    .venv/bin/python benchmarks/retrieval_curves.py --sensor active_stereo --designs instances \
+        --sizes 100 300 1000
 
 Writes results.json, curves.md (both tables) and curves.png (the curve set) under --out, and prints
 per design and rare tag the sizes where the rare-rich set leads beyond its interval.
@@ -35,6 +37,7 @@ from scenegen.experiment.retrieval_curves import (
     training_sets,
 )
 from scenegen.perception.retrieval.frames import frames_key, render_missing
+from scenegen.render.sensor import SENSOR_NAMES
 from scenegen.store.batch import atomic_write
 
 
@@ -47,9 +50,16 @@ def main() -> None:
     parser.add_argument("--designs", nargs="+", choices=DESIGNS, default=list(DESIGNS))
     parser.add_argument("--cache", type=Path, default=Path("runs/cache/frames"))
     parser.add_argument(
-        "--heads", type=Path, default=Path("runs/curves"), help="trained heads and their scores"
+        "--heads", type=Path, help="trained heads and their scores (default runs/curves[_SENSOR])"
     )
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/retrieval_curves"))
+    parser.add_argument("--out", type=Path, help="default benchmarks/results/retrieval_curves[_SENSOR]")
+    parser.add_argument(
+        "--sensor",
+        choices=SENSOR_NAMES,
+        default="exact",
+        help="the frames' depth at training and scoring (docs/sensor.md); a head through a sensor is "
+        "trained under its depth rule (regions.rule_name_for)",
+    )
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument(
         "--smallest-first",
@@ -57,18 +67,21 @@ def main() -> None:
         help="train the smallest sets first (a second run beside one going largest first shares its heads)",
     )
     args = parser.parse_args()
+    suffix = "" if args.sensor == "exact" else f"_{args.sensor}"
+    args.heads = args.heads or Path(f"runs/curves{suffix}")
+    args.out = args.out or Path(f"benchmarks/results/retrieval_curves{suffix}")
 
     started = time.monotonic()
     wanted = {}
     for group in (*scoring_scenes().values(), *(s for n in args.sizes for s in training_sets(n).values())):
-        wanted.update({frames_key(s): s for s in group})
-    render_missing(list(wanted.values()), args.cache, args.workers, progress=True)
+        wanted.update({frames_key(s, sensor=args.sensor): s for s in group})
+    render_missing(list(wanted.values()), args.cache, args.workers, progress=True, sensor=args.sensor)
 
     jobs = curve_jobs(args.sizes, args.seeds, args.designs)
     jobs = jobs[::-1] if args.smallest_first else jobs
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(args.workers, mp_context=context) as pool:
-        futures = [pool.submit(run_job, job, args.heads, args.cache) for job in jobs]
+        futures = [pool.submit(run_job, job, args.heads, args.cache, sensor=args.sensor) for job in jobs]
         records = []
         for job, future in zip(jobs, futures, strict=True):
             records.append(future.result())

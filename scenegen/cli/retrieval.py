@@ -14,6 +14,8 @@ SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py
 
 
 def add_commands(sub) -> None:
+    from scenegen.perception.retrieval.regions import DEPTH_RULES
+
     ret = sub.add_parser(
         "retrieval",
         help="train the retrieval head (RGB-D + category -> the target's pixels); measure it offline",
@@ -69,6 +71,13 @@ def add_commands(sub) -> None:
         "--batch-size", type=int, default=8, help="segmenter: scenes per step, each with both cameras"
     )
     tr.add_argument("--width", type=int, default=8, help="segmenter: channels of the first level (default 8)")
+    tr.add_argument(
+        "--depth-rule",
+        choices=tuple(DEPTH_RULES),
+        help="instances: how the region step reads depth (regions.DEPTH_RULES; default: exact for exact "
+        "depth, the sensor's rule through a sensor, docs/sensor.md); saved in the checkpoint and applied "
+        "wherever it is used",
+    )
     tr.add_argument("--seed", type=int, default=0)
     add_device_argument(tr)
     _common(tr)
@@ -162,6 +171,10 @@ def retrieval_train(args: argparse.Namespace) -> int:
         )
     if not 2 <= args.width <= 64:
         return fail("--width must lie between 2 and 64")
+    if args.depth_rule not in (None, "exact") and args.design != "instances":
+        return fail(
+            f"--depth-rule {args.depth_rule}: only the instances design has a region step's depth rule"
+        )
     if (problem := device_error(args)) is not None:
         return fail(problem)
     try:
@@ -187,7 +200,12 @@ def retrieval_train(args: argparse.Namespace) -> int:
 
         common = {"alpha": args.alpha, "description": described, "device": args.device}
         if args.design == "instances":
+            from scenegen.perception.retrieval.regions import DEPTH_RULES, rule_name_for
+
             extra = {"progress": not args.quiet, "separator_steps": args.separator_steps}
+            rule = args.depth_rule or rule_name_for(args.sensor)
+            if rule != "exact":  # exact's call stays as it was (a retrained default keeps its bytes)
+                extra["rule"] = DEPTH_RULES[rule]
             frames, train = list(frames), train_instances
         else:  # the call of issue 33, so a retrained baseline keeps its bytes
             extra, train = {}, train_classifier

@@ -112,17 +112,21 @@ def train_head(
     steps: dict | None = None,
     recipe=None,
     described: dict | None = None,
+    sensor: str = "exact",
 ) -> dict:
     """Train ``job``'s head on ``scenes`` (frames from ``cache``) into ``out``, as the transfer
     experiment's arms train theirs: the design's defaults (``steps``: ``classifier`` and
     ``separator`` step counts instead, for a tiny run), every scene drawn with equal weight (or by
     ``recipe``, a MixtureRecipe: a transfer arm's). ``described``: what config.json records of the
-    training set (default: the job and the scenes' layout ids)."""
+    training set (default: the job and the scenes' layout ids). ``sensor``: the frames' depth
+    (render.sensor); through a sensor the head is trained under that sensor's depth rule
+    (``regions.rule_name_for``)."""
     from scenegen.assets.catalog import load_catalog
     from scenegen.perception.retrieval.frames import scene_frames
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, rule_name_for
 
     categories = list(load_catalog().categories)
-    frames = list(scene_frames(scenes, cache))
+    frames = list(scene_frames(scenes, cache, sensor=sensor))
     described = described or {"curve_job": job.name, "scenes": [panel_id(s) for s in scenes]}
     mixture = {} if recipe is None else {"recipe": recipe}
     steps = steps or {}
@@ -131,6 +135,8 @@ def train_head(
         from scenegen.perception.retrieval.candidates import train_instances
 
         separator = {"separator_steps": steps["separator"]} if "separator" in steps else {}
+        if sensor != "exact":  # exact's calls stay as they were
+            separator["rule"] = DEPTH_RULES[rule_name_for(sensor)]
         return train_instances(
             scenes,
             frames,
@@ -149,8 +155,11 @@ def train_head(
     )
 
 
-def score_head(checkpoint: Path, scored: dict[str, list[EnvScene]], cache: Path) -> list[dict]:
-    """One row per scored layout: its set, ``panel_id``, tags, overlap hit and centre hit."""
+def score_head(
+    checkpoint: Path, scored: dict[str, list[EnvScene]], cache: Path, sensor: str = "exact"
+) -> list[dict]:
+    """One row per scored layout: its set, ``panel_id``, tags, overlap hit and centre hit; frames
+    through ``sensor``."""
     from scenegen.perception.retrieval.evaluate import scene_metrics
     from scenegen.perception.retrieval.frames import scene_frames
     from scenegen.perception.retrieval.perceive import RetrievalPerception
@@ -158,7 +167,7 @@ def score_head(checkpoint: Path, scored: dict[str, list[EnvScene]], cache: Path)
     predict = RetrievalPerception.load(checkpoint).predict
     rows = []
     for name, scenes in scored.items():
-        for scene, frames in zip(scenes, scene_frames(scenes, cache), strict=True):
+        for scene, frames in zip(scenes, scene_frames(scenes, cache, sensor=sensor), strict=True):
             m = scene_metrics(predict, scene, frames)
             rows.append(
                 {
@@ -173,11 +182,17 @@ def score_head(checkpoint: Path, scored: dict[str, list[EnvScene]], cache: Path)
 
 
 def run_job(
-    job: CurveJob, folder: Path, cache: Path, scored: dict | None = None, steps: dict | None = None
+    job: CurveJob,
+    folder: Path,
+    cache: Path,
+    scored: dict | None = None,
+    steps: dict | None = None,
+    sensor: str = "exact",
 ) -> dict:
     """Train and score one head (skipped where its ``scores.jsonl`` exists: resumable); its record.
     ``scored``: the layouts to score on (default :func:`scoring_scenes`); ``steps``: see
-    :func:`train_head`."""
+    :func:`train_head`; ``sensor``: the frames' depth at training and scoring (a separate
+    ``folder`` per sensor)."""
     import json
 
     import torch
@@ -188,8 +203,8 @@ def run_job(
     out = Path(folder) / job.name
     done = out / "scores.jsonl"
     if not done.exists():
-        summary = train_head(job, training_sets(job.n)[job.set_name], out, cache, steps)
-        rows = score_head(out, scored or scoring_scenes(), cache)
+        summary = train_head(job, training_sets(job.n)[job.set_name], out, cache, steps, sensor=sensor)
+        rows = score_head(out, scored or scoring_scenes(), cache, sensor)
         record = {
             "job": job.name,
             "training_cpu_s": summary["cpu_seconds"],

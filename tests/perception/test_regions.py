@@ -50,3 +50,37 @@ def test_a_margin_round_the_robots_pixels_keeps_them_out(table):
     assert not keep[robot].any() and keep[196:224, 296:324].sum() > 0
     keep, _ = foreground(raised, robot, camera, robot_margin=4)
     assert not keep[196:224, 296:324].any() and keep[190:194, 290:294].all()
+
+
+def test_a_depth_rule_mends_holes_then_smooths_and_exact_depths_rule_leaves_a_frame_as_it_is():
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, DepthRule
+
+    depth = np.full((12, 12), 1.0, np.float32)
+    depth[:, 6:] = 1.2
+    depth[3, 2] = depth[8, 9] = 0.0  # no return
+    depth[5, 4] = 1.3  # one outlier
+    assert DEPTH_RULES["exact"] == DepthRule() and DepthRule().mend(depth) is depth
+    filled = DepthRule(fill=True).mend(depth)
+    assert filled[3, 2] == 1.0 and filled[8, 9] == pytest.approx(1.2) and filled[5, 4] == pytest.approx(1.3)
+    smooth = DepthRule(fill=True, median=5).mend(depth)
+    assert smooth[5, 4] == 1.0 and (smooth > 0).all()  # the outlier is gone, no hole is left
+    assert smooth[:, :5].max() == 1.0 and smooth[:, 7:].min() == pytest.approx(1.2)  # the step stays put
+
+
+def test_a_depth_rule_is_read_from_a_checkpoint_config_or_refused_in_one_line():
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, DepthRule
+
+    rule = DEPTH_RULES["mended_5mm"]
+    assert DepthRule.from_config(rule.config(), "c.json") == rule
+    assert DepthRule.from_config({"above": 0}, "c.json") == DepthRule(above=0.0)  # an int is a number
+    bad = [
+        ({"fill": 1}, "depth_rule fill 1 is not a bool"),
+        ({"median": 4}, "median 4: 0 .none., 3 or 5"),
+        ({"above": 0.5}, "above 0.5 m"),
+        ({"blur": 3}, "keys fill, median, above, robot_margin, table_fit"),
+        ([], "must be an object"),
+    ]
+    for spec, message in bad:
+        with pytest.raises(ValueError, match=message) as caught:
+            DepthRule.from_config(spec, "c.json")
+        assert str(caught.value).startswith("c.json: ") and len(str(caught.value).splitlines()) == 1

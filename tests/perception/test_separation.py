@@ -143,6 +143,44 @@ def test_a_tiny_instances_head_trains_both_networks_and_predicts(tiny_head, tmp_
         assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
 
 
+def test_a_head_trained_through_a_sensor_keeps_its_depth_rule_and_mends_what_it_is_shown(
+    demo_batch: Path, tmp_path: Path
+):
+    from scenegen.core.files import CheckpointError
+    from scenegen.perception.retrieval.candidates import CandidatePicker, robot_pixels, train_instances
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, foreground
+
+    scenes = batch_scenes(demo_batch)[:3]
+    frames = list(scene_frames(scenes, tmp_path / "frames", sensor="active_stereo"))
+    assert all((f.depth == 0).any() for f in frames)  # the sensor leaves pixels without depth
+    rule, out = DEPTH_RULES["mended_5mm"], tmp_path / "head"
+    train_instances(scenes, frames, CATEGORIES, out, steps=20, seed=0, separator_steps=20, rule=rule)
+    assert json.loads((out / "config.json").read_text())["depth_rule"] == rule.config()
+    picker = CandidatePicker(out)
+    assert picker.rule == rule and picker.split.rule == rule
+    shown = []
+    split = picker.split
+    picker.split = lambda rgb, depth, robot, camera: shown.append(depth) or split(rgb, depth, robot, camera)
+    scene, f = scenes[0], frames[0]
+    robot = robot_pixels(f, scene)
+    picker.predict(f, scene.cameras, target_category(scene), robot)
+    assert len(shown) == 2
+    assert all(np.array_equal(d, rule.mend(raw)) for d, raw in zip(shown, f.depth, strict=True))
+    cameras = {c.name: c for c in scene.cameras}
+    for k, name in enumerate(f.cameras):  # what the rule is for: the table's noise is no object
+        table = f.seg[k] == scene.segmentation["table"]
+        raw, _ = foreground(f.depth[k], robot[k], cameras[name])
+        mended, _ = rule.foreground(shown[k], robot[k], cameras[name])
+        assert (raw & table).sum() > 1000 and (mended & table).sum() < 0.25 * (raw & table).sum()
+    config = json.loads((out / "config.json").read_text())
+    (out / "config.json").write_text(json.dumps(config | {"depth_rule": {"median": 4}}))
+    with pytest.raises(
+        CheckpointError, match=r"config.json: depth_rule median 4: .*retrieval train"
+    ) as caught:
+        CandidatePicker(out)
+    assert len(str(caught.value).splitlines()) == 1
+
+
 def test_an_instances_checkpoint_without_its_separator_is_a_one_line_error(tiny_head, tmp_path: Path):
     from scenegen.core.files import CheckpointError
     from scenegen.perception.retrieval.perceive import RetrievalPerception

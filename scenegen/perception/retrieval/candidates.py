@@ -28,6 +28,7 @@ from scenegen.perception.retrieval.model import Prediction
 from scenegen.perception.retrieval.regions import (  # noqa: F401 - the design's split, re-exported
     EDGE,
     MIN_PIXELS,
+    DepthRule,
     candidate_regions,
     depth_edge_regions,
     foreground,
@@ -228,14 +229,17 @@ def train_instances(
     channels: int = CHANNELS,
     device: str = "cpu",
     recipe=None,
+    rule=None,
 ) -> dict:
     """The ``instances`` design: a :class:`Separator` trained on the scenes' instance labels, then
     the crop classifier trained on the regions it gives (as it will see them at prediction time);
     both saved in ``out`` (separator.safetensors, model.safetensors, config.json). ``frames``: the
     scenes' frames, a sequence (read twice). Scenes are drawn by the seed's mixture (``alpha``; or
     ``recipe``), as the classifier draws them. ``channels``: the separator's input planes
-    (separation.py: 9; 7 as separators were saved before the contact channels). Returns the
-    classifier's summary with the separator's under ``separator``."""
+    (separation.py: 9; 7 as separators were saved before the contact channels). ``rule``: the
+    region step's ``regions.DepthRule`` (default exact depth's; another is saved in config.json as
+    ``depth_rule`` and applied at prediction time). Returns the classifier's summary with the
+    separator's under ``separator``."""
     from safetensors.torch import save_file
 
     from scenegen.env.mixture import scene_weights
@@ -243,7 +247,10 @@ def train_instances(
     from scenegen.perception.retrieval.train import default_recipe
 
     started = time.process_time()
-    inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels)
+    rule = rule or DepthRule()
+    if rule.mends:
+        frames = [rule.mend_frames(f) for f in frames]
+    inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels, rule)
     recipe = recipe or default_recipe(scenes, alpha)  # the mixture both parts draw scenes by
     weights = scene_weights(recipe, scenes)[scene_of]
     model, summary = train_separator(
@@ -263,6 +270,8 @@ def train_instances(
     out.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "separator.safetensors"))
     design = {"kind": "instances", "separator": {"width": width, "channels": channels, "training": summary}}
+    if rule != DepthRule():  # exact depth's rule is left out: such checkpoints keep their bytes
+        design["depth_rule"] = rule.config()
     result = train_classifier(
         scenes,
         frames,
@@ -273,7 +282,7 @@ def train_instances(
         alpha=alpha,
         description=description,
         progress=progress,
-        split=SeparatorRegions(model),
+        split=SeparatorRegions(model, rule),
         design=design,
         device=device,
         recipe=recipe,
@@ -289,7 +298,13 @@ class CandidatePicker:
     def __init__(self, folder: Path):
         from safetensors.torch import load_file
 
-        from scenegen.core.files import checkpoint_error, int_field, names_field, read_checkpoint_config
+        from scenegen.core.files import (
+            CheckpointError,
+            checkpoint_error,
+            int_field,
+            names_field,
+            read_checkpoint_config,
+        )
 
         folder = Path(folder)
         remedy = "train one with `scenegen retrieval train --out DIR`"
@@ -302,10 +317,16 @@ class CandidatePicker:
             raise checkpoint_error(folder / "model.safetensors", exc, remedy) from None
         self.model.eval()
         self.split = depth_edge_regions
+        self.rule = DepthRule()
         if config.get("kind") == "instances":
             from scenegen.perception.retrieval.separation import load_separator
 
-            self.split = load_separator(folder, config, remedy)
+            if "depth_rule" in config:
+                try:
+                    self.rule = DepthRule.from_config(config["depth_rule"], folder / "config.json")
+                except ValueError as exc:
+                    raise CheckpointError(f"{exc}; {remedy}") from None
+            self.split = load_separator(folder, config, remedy, self.rule)
 
     def predict(self, frames, cameras, category: str, robot: np.ndarray) -> list[Prediction]:
         """The predicted target region per camera of ``frames``: ``cameras`` their parameters,
@@ -315,7 +336,7 @@ class CandidatePicker:
                 f"category {category!r}: this retrieval head knows {', '.join(self.model.categories)}; "
                 "train one on scenes that hold it (scenegen retrieval train), or use the oracle"
             )
-        candidates = frame_candidates(frames, cameras, robot, self.split)
+        candidates = frame_candidates(self.rule.mend_frames(frames), cameras, robot, self.split)
         empty = np.zeros(frames.depth.shape[1:], bool)
         predictions = [Prediction(empty, 0.0) for _ in frames.cameras]
         if not candidates:

@@ -4,6 +4,8 @@ design's split of it where depth jumps (docs/retrieval.md). Shared by the candid
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass, fields, replace
+
 import numpy as np
 
 from scenegen.perception.points import masked_points
@@ -64,6 +66,95 @@ def _table_plane(points: np.ndarray, on_table: np.ndarray, band: float = 0.02) -
     inliers = np.abs(residual) <= 2.5 * residual.std()
     coef, *_ = np.linalg.lstsq(design[inliers], xyz[inliers, 2], rcond=None)
     return coef[0] * points[..., 0] + coef[1] * points[..., 1] + coef[2]
+
+
+@dataclass(frozen=True)
+class DepthRule:
+    """How a frame's depth becomes the region step's foreground: first mended (``fill``: a pixel
+    without depth takes its nearest valid neighbour's; ``median``: a median filter of that aperture,
+    0 for none), then :func:`foreground`'s options (``above``, ``robot_margin``, ``table_fit``). The
+    default is exact depth's rule, and leaves a frame as it is; a head trained through a sensor
+    records its rule in its checkpoint (config.json ``depth_rule``) and applies it at decision time
+    (docs/sensor.md, "The region step through the sensor")."""
+
+    fill: bool = False
+    median: int = 0
+    above: float = ABOVE_TABLE
+    robot_margin: int = 0
+    table_fit: bool = False
+
+    def __post_init__(self):
+        if self.median not in (0, 3, 5):
+            raise ValueError(f"depth_rule median {self.median!r}: 0 (none), 3 or 5")
+        if not 0 <= self.above <= 0.05 or not 0 <= self.robot_margin <= 16:
+            raise ValueError(
+                f"depth_rule above {self.above!r} m, robot_margin {self.robot_margin!r} px: 0-0.05 and 0-16"
+            )
+
+    @property
+    def mends(self) -> bool:
+        return self.fill or self.median > 0
+
+    def mend(self, depth: np.ndarray) -> np.ndarray:
+        """(H, W) float32 depth with its holes filled and smoothed as the rule says (``depth`` itself
+        when it says nothing)."""
+        if not self.mends:
+            return depth
+        out = depth.astype(np.float32)
+        if self.fill and (out <= 0).any() and (out > 0).any():
+            from scipy.ndimage import distance_transform_edt
+
+            _, (rows, cols) = distance_transform_edt(out <= 0, return_indices=True)
+            out = out[rows, cols]
+        if self.median:
+            import cv2
+
+            out = cv2.medianBlur(out, self.median)
+        return out
+
+    def mend_frames(self, frames):
+        """``frames`` (``frames.Frames``) with every camera's depth mended."""
+        if not self.mends:
+            return frames
+        return replace(frames, depth=np.stack([self.mend(d) for d in frames.depth]))
+
+    def foreground(self, depth: np.ndarray, robot_mask: np.ndarray, camera):
+        """:func:`foreground` of an already mended ``depth`` under this rule."""
+        return foreground(depth, robot_mask, camera, self.above, self.robot_margin, self.table_fit)
+
+    def config(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_config(cls, spec, where) -> DepthRule:
+        """The rule a checkpoint's config.json states (ValueError naming ``where`` when malformed)."""
+        known = {f.name: f.type for f in fields(cls)}
+        if not isinstance(spec, dict) or set(spec) - set(known):
+            raise ValueError(f"{where}: depth_rule must be an object with keys {', '.join(known)}")
+        kinds = {"fill": bool, "median": int, "above": float, "robot_margin": int, "table_fit": bool}
+        for key, value in spec.items():
+            ok = isinstance(value, kinds[key]) or (kinds[key] is float and type(value) is int)
+            if not ok or (kinds[key] is int and type(value) is bool):
+                raise ValueError(f"{where}: depth_rule {key} {value!r} is not a {kinds[key].__name__}")
+        try:
+            return cls(**spec)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+
+
+# The rules a head can be trained under (`scenegen retrieval train --depth-rule`): exact depth's, and
+# those measured for a sensor's depth on the validation side (docs/sensor.md).
+DEPTH_RULES = {
+    "exact": DepthRule(),
+    "mended_5mm": DepthRule(fill=True, median=5, above=0.005, robot_margin=4, table_fit=True),
+    "mended_8mm": DepthRule(fill=True, median=5, above=0.008, robot_margin=4, table_fit=True),
+}
+SENSOR_RULE = "mended_5mm"  # the rule `retrieval train --sensor` uses unless told (chosen on validation)
+
+
+def rule_name_for(sensor: str) -> str:
+    """The name of the depth rule a head trained through ``sensor`` uses unless told."""
+    return "exact" if sensor == "exact" else SENSOR_RULE
 
 
 def candidate_regions(depth: np.ndarray, robot_mask: np.ndarray, camera, **rule) -> list[np.ndarray]:

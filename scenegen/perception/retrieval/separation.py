@@ -203,8 +203,11 @@ class SeparatorRegions:
     """The ``instances`` design's region split of one frame: the separator's interior map on the
     foreground's bounding box, grown into regions (:func:`grow_regions`)."""
 
-    def __init__(self, model: Separator):
+    def __init__(self, model: Separator, rule=None):
+        from scenegen.perception.retrieval.regions import DepthRule
+
         self.model = model.eval()
+        self.rule = rule or DepthRule()  # the foreground's options (frames come mended by the caller)
 
     def interior(
         self, rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray
@@ -221,9 +224,7 @@ class SeparatorRegions:
         return out
 
     def __call__(self, rgb, depth, robot, camera) -> list[np.ndarray]:
-        from scenegen.perception.retrieval.regions import foreground
-
-        keep, height = foreground(depth, robot, camera)
+        keep, height = self.rule.foreground(depth, robot, camera)
         return grow_regions(self.interior(rgb, depth, keep, height), keep, height)
 
 
@@ -315,19 +316,24 @@ def train_separator(
     return model.cpu().eval(), summary
 
 
-def separator_frames(scenes, frames, channels: int = CHANNELS) -> tuple[list, list, list, list[int]]:
+def separator_frames(
+    scenes, frames, channels: int = CHANNELS, rule=None
+) -> tuple[list, list, list, list[int]]:
     """The separator's training frames of ``scenes``: per camera frame its input (float16, see
     :func:`separator_input`), its labels (:func:`interior_labels`), its contacts
     (:func:`contact_groups`) and its scene's position; the
-    robot's pixels and the instance ids come from the frames' segmentation (training only)."""
-    from scenegen.perception.retrieval.regions import foreground, robot_pixels
+    robot's pixels and the instance ids come from the frames' segmentation (training only).
+    ``rule``: the region step's ``regions.DepthRule`` (frames come mended by it)."""
+    from scenegen.perception.retrieval.regions import DepthRule, robot_pixels
+
+    rule = rule or DepthRule()
 
     inputs, labels, contacts, scene_of = [], [], [], []
     for i, (scene, f) in enumerate(zip(scenes, frames, strict=True)):
         cameras = {c.name: c for c in scene.cameras}
         robot = robot_pixels(f, scene)
         for k, name in enumerate(f.cameras):
-            keep, height = foreground(f.depth[k], robot[k], cameras[name])
+            keep, height = rule.foreground(f.depth[k], robot[k], cameras[name])
             inputs.append(separator_input(f.rgb[k], f.depth[k], keep, height, channels).astype(np.float16))
             labels.append(interior_labels(f.seg[k], keep, height))
             contacts.append(contact_groups(f.seg[k], labels[-1]))
@@ -335,8 +341,9 @@ def separator_frames(scenes, frames, channels: int = CHANNELS) -> tuple[list, li
     return inputs, labels, contacts, scene_of
 
 
-def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
-    """The region split of an ``instances`` checkpoint folder (its separator.safetensors)."""
+def load_separator(folder, config: dict, remedy: str, rule=None) -> SeparatorRegions:
+    """The region split of an ``instances`` checkpoint folder (its separator.safetensors), under
+    ``rule`` (its ``regions.DepthRule``)."""
     from safetensors.torch import load_file
 
     from scenegen.core.files import checkpoint_error, int_field
@@ -354,4 +361,4 @@ def load_separator(folder, config: dict, remedy: str) -> SeparatorRegions:
         model.load_state_dict(load_file(str(Path(folder) / "separator.safetensors")))
     except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
         raise checkpoint_error(Path(folder) / "separator.safetensors", exc, remedy) from None
-    return SeparatorRegions(model)
+    return SeparatorRegions(model, rule)
