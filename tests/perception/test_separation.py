@@ -173,10 +173,55 @@ def test_a_head_trained_through_a_sensor_keeps_its_depth_rule_and_mends_what_it_
         mended, _ = rule.foreground(shown[k], robot[k], cameras[name])
         assert (raw & table).sum() > 1000 and (mended & table).sum() < 0.25 * (raw & table).sum()
     config = json.loads((out / "config.json").read_text())
+    assert "outputs" not in config["separator"]  # a threshold rule: the separator's one map
     (out / "config.json").write_text(json.dumps(config | {"depth_rule": {"median": 4}}))
     with pytest.raises(
         CheckpointError, match=r"config.json: depth_rule median 4: .*retrieval train"
     ) as caught:
+        CandidatePicker(out)
+    assert len(str(caught.value).splitlines()) == 1
+
+
+def test_a_learned_foreground_labels_objects_against_the_table_and_maps_them(
+    demo_batch: Path, tmp_path: Path
+):
+    from scenegen.core.files import CheckpointError
+    from scenegen.perception.observation import BACKGROUND
+    from scenegen.perception.retrieval.candidates import CandidatePicker, robot_pixels, train_instances
+    from scenegen.perception.retrieval.regions import DEPTH_RULES
+    from scenegen.perception.retrieval.separation import separator_frames
+
+    scenes = batch_scenes(demo_batch)[:2]
+    rule = DEPTH_RULES["learned"]
+    frames = [rule.mend_frames(f) for f in scene_frames(scenes, tmp_path / "frames", sensor="active_stereo")]
+    inputs, labels, _, _, objects = separator_frames(scenes, frames, rule=rule)
+    assert len(objects) == len(labels) == 4
+    for k, (scene, f) in enumerate((s, f) for s, f in zip(scenes, frames, strict=True) for _ in range(2)):
+        seg = f.seg[k % 2]
+        background = np.isin(seg, [scene.segmentation[n] for n in BACKGROUND])
+        table = seg == scene.segmentation["table"]
+        assert (objects[k][table] <= 0).all() and (objects[k][table] == 0).mean() > 0.9  # the table: 0
+        assert (objects[k][~background] >= 0).mean() > 0.9  # objects on the table: scored ...
+        assert ((objects[k] == 1) == ((objects[k] >= 0) & ~background)).all()  # ... as objects
+        assert ((labels[k] >= 0) == (objects[k] == 1)).all()  # interiors and boundaries: objects only
+        assert inputs[k][7].any()  # the height channels see the whole table
+    out = tmp_path / "learned"
+    with pytest.raises(ValueError, match="no candidate region in the 2 training scenes' frames"):
+        train_instances(scenes, frames, CATEGORIES, out, steps=10, seed=0, separator_steps=1, rule=rule)
+    train_instances(scenes, frames, CATEGORIES, out, steps=10, seed=0, separator_steps=100, rule=rule)
+    config = json.loads((out / "config.json").read_text())
+    assert config["separator"]["outputs"] == 2 and config["depth_rule"]["learned"] is True
+    picker = CandidatePicker(out)
+    assert picker.split.model.outputs == 2
+    scene, f = scenes[0], frames[0]
+    robot = robot_pixels(f, scene)
+    camera = {c.name: c for c in scene.cameras}[f.cameras[0]]
+    field, height = rule.foreground(f.depth[0], robot[0], camera)
+    interior, keep = picker.split.interior(f.rgb[0], f.depth[0], field, height)
+    assert not (keep & ~field).any() and not (interior & ~keep).any()  # the object map lies on the table
+    config["separator"]["outputs"] = 3
+    (out / "config.json").write_text(json.dumps(config))
+    with pytest.raises(CheckpointError, match="separator outputs 3: 1 or 2") as caught:
         CandidatePicker(out)
     assert len(str(caught.value).splitlines()) == 1
 

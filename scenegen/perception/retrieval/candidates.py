@@ -160,6 +160,11 @@ def train_classifier(
             crops.append(crop)
             labels.append(region_label(region, f.seg[k], scene, categories))
             scene_of.append(i)
+    if not crops:
+        raise ValueError(
+            f"no candidate region in the {len(scenes)} training scenes' frames: the region split found no "
+            "object (train on more scenes, or the separator longer: --separator-steps)"
+        )
     x, y = torch.from_numpy(np.stack(crops)), torch.tensor(labels)
     candidates_cpu = time.process_time() - started
     on = resolve_device(device)
@@ -250,7 +255,7 @@ def train_instances(
     rule = rule or DepthRule()
     if rule.mends:
         frames = [rule.mend_frames(f) for f in frames]
-    inputs, labels, contacts, scene_of = separator_frames(scenes, frames, channels, rule)
+    inputs, labels, contacts, scene_of, objects = separator_frames(scenes, frames, channels, rule)
     recipe = recipe or default_recipe(scenes, alpha)  # the mixture both parts draw scenes by
     weights = scene_weights(recipe, scenes)[scene_of]
     model, summary = train_separator(
@@ -263,13 +268,15 @@ def train_instances(
         width=width,
         progress=progress,
         device=device,
+        objects=objects,
     )
-    del inputs, labels, contacts
+    del inputs, labels, contacts, objects
     summary["cpu_seconds"] = round(time.process_time() - started, 1)  # frames' inputs included
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_file({k: v.contiguous() for k, v in model.state_dict().items()}, str(out / "separator.safetensors"))
-    design = {"kind": "instances", "separator": {"width": width, "channels": channels, "training": summary}}
+    spec = {"width": width, "channels": channels} | ({"outputs": 2} if rule.learned else {})
+    design = {"kind": "instances", "separator": spec | {"training": summary}}
     if rule != DepthRule():  # exact depth's rule is left out: such checkpoints keep their bytes
         design["depth_rule"] = rule.config()
     result = train_classifier(

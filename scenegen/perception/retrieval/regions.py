@@ -82,6 +82,7 @@ class DepthRule:
     above: float = ABOVE_TABLE
     robot_margin: int = 0
     table_fit: bool = False
+    learned: bool = False  # no height threshold: every table pixel is the separator's to call object or table
 
     def __post_init__(self):
         if self.median not in (0, 3, 5):
@@ -119,8 +120,10 @@ class DepthRule:
         return replace(frames, depth=np.stack([self.mend(d) for d in frames.depth]))
 
     def foreground(self, depth: np.ndarray, robot_mask: np.ndarray, camera):
-        """:func:`foreground` of an already mended ``depth`` under this rule."""
-        return foreground(depth, robot_mask, camera, self.above, self.robot_margin, self.table_fit)
+        """:func:`foreground` of an already mended ``depth`` under this rule; a ``learned`` rule's is
+        every pixel on the table (the separator's object map then says which are objects)."""
+        above = -np.inf if self.learned else self.above
+        return foreground(depth, robot_mask, camera, above, self.robot_margin, self.table_fit)
 
     def config(self) -> dict:
         return asdict(self)
@@ -131,7 +134,14 @@ class DepthRule:
         known = {f.name: f.type for f in fields(cls)}
         if not isinstance(spec, dict) or set(spec) - set(known):
             raise ValueError(f"{where}: depth_rule must be an object with keys {', '.join(known)}")
-        kinds = {"fill": bool, "median": int, "above": float, "robot_margin": int, "table_fit": bool}
+        kinds = {
+            "fill": bool,
+            "median": int,
+            "above": float,
+            "robot_margin": int,
+            "table_fit": bool,
+            "learned": bool,
+        }
         for key, value in spec.items():
             ok = isinstance(value, kinds[key]) or (kinds[key] is float and type(value) is int)
             if not ok or (kinds[key] is int and type(value) is bool):
@@ -148,6 +158,7 @@ DEPTH_RULES = {
     "exact": DepthRule(),
     "mended_5mm": DepthRule(fill=True, median=5, above=0.005, robot_margin=4, table_fit=True),
     "mended_8mm": DepthRule(fill=True, median=5, above=0.008, robot_margin=4, table_fit=True),
+    "learned": DepthRule(fill=True, median=5, robot_margin=4, table_fit=True, learned=True),
 }
 SENSOR_RULE = "mended_5mm"  # the rule `retrieval train --sensor` uses unless told (chosen on validation)
 

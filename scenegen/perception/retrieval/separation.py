@@ -42,6 +42,7 @@ MIN_SEED = 4  # px: a smaller interior component is noise, no seed
 BOUNDARY_WEIGHT = 10.0  # loss weight of a boundary pixel (few foreground pixels are one)
 PATCH = 80  # px: square training crops
 INTERIOR_LOGIT = 0.0  # a pixel is interior where the network's logit exceeds this (probability 0.5)
+OBJECT_LOGIT = 0.0  # a learned foreground's pixel is an object's where its logit exceeds this
 SEPARATOR_STEPS = 3000  # training steps of 8 crops (the instances design's default)
 JUMP = 0.04  # m: the scale of the depth-difference channel (the candidate design's split)
 STEP = 0.01  # m: the scale of the two height channels at contacts (a spoon lies 6 mm proud of its plate)
@@ -127,16 +128,17 @@ class Separator(nn.Module):
     block for context), decoded back to full resolution with skips; (B, channels, H, W) -> (B, 1, H,
     W) interior logits. Narrow at full resolution, where most of the CPU goes."""
 
-    def __init__(self, width: int = 8, channels: int = CHANNELS):
+    def __init__(self, width: int = 8, channels: int = CHANNELS, outputs: int = 1):
         super().__init__()
         self.width = w = width
         self.channels = channels
+        self.outputs = outputs  # 1: interior; 2: interior and object (a learned foreground)
         self.stem = _block(channels, w)
         self.down1 = nn.Sequential(_block(w, 2 * w, stride=2), _block(2 * w, 2 * w))
         self.down2 = nn.Sequential(_block(2 * w, 4 * w, stride=2), _block(4 * w, 4 * w, dilation=2))
         self.up2 = _block(4 * w + 2 * w, 2 * w)
         self.up1 = _block(2 * w + w, w)
-        self.head = nn.Conv2d(w, 1, 1)
+        self.head = nn.Conv2d(w, outputs, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         s = self.stem(x)
@@ -211,21 +213,28 @@ class SeparatorRegions:
 
     def interior(
         self, rgb: np.ndarray, depth: np.ndarray, keep: np.ndarray, height: np.ndarray
-    ) -> np.ndarray:
-        """(H, W) bool predicted interior of one frame (False outside the foreground)."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) bool predicted interior of one frame, and its foreground: ``keep``, or where a
+        separator with an object map (``outputs`` 2) calls a pixel of ``keep`` an object's; the
+        interior lies inside it."""
         out = np.zeros_like(keep)
         box = _box(keep)
         if box is None:
-            return out
+            return out, keep
         x = separator_input(rgb[box], depth[box], keep[box], height[box], self.model.channels)
         with torch.no_grad():
-            logits = self.model(torch.from_numpy(x)[None])[0, 0].numpy()
-        out[box] = (logits > INTERIOR_LOGIT) & keep[box]
-        return out
+            logits = self.model(torch.from_numpy(x)[None])[0].numpy()
+        if self.model.outputs == 2:
+            objects = np.zeros_like(keep)
+            objects[box] = (logits[1] > OBJECT_LOGIT) & keep[box]
+            keep = objects
+        out[box] = (logits[0] > INTERIOR_LOGIT) & keep[box]
+        return out, keep
 
     def __call__(self, rgb, depth, robot, camera) -> list[np.ndarray]:
         keep, height = self.rule.foreground(depth, robot, camera)
-        return grow_regions(self.interior(rgb, depth, keep, height), keep, height)
+        interior, keep = self.interior(rgb, depth, keep, height)
+        return grow_regions(interior, keep, height)
 
 
 def _patch_corner(pool: np.ndarray, shape: tuple[int, int], rng: np.random.Generator) -> tuple[int, int]:
@@ -256,6 +265,7 @@ def train_separator(
     batch: int = 8,
     progress: bool = False,
     device: str = "cpu",
+    objects: Sequence[np.ndarray] | None = None,
 ) -> tuple[Separator, dict]:
     """A :class:`Separator` trained on frames' ``inputs`` (each (C, H, W)) and ``labels``
     (each (H, W) int8, :func:`interior_labels`). Half of a batch's crops are centred on any
@@ -263,8 +273,11 @@ def train_separator(
     other half on a boundary pixel: a frame with contacts drawn by weight, one of its
     ``contacts`` (:func:`contact_groups`) with equal chance, a pixel of it (a knife's thin contact
     with a can counts as much as a box's long one with a plate). Crops of ``PATCH`` px, flipped at
-    random, colours scaled (dim scenes are a rare case). Returns the model and a summary (losses,
-    CPU-seconds); the model on the CPU, wherever it trained (``device``, scenegen/devices.py)."""
+    random, colours scaled (dim scenes are a rare case). ``objects``: per frame (H, W) int8 object
+    labels of a learned foreground (1 an object's pixel, 0 the table's, -1 not scored; see
+    :func:`separator_frames`): the model then has a second output, the object map, whose loss is
+    added. Returns the model and a summary (losses, CPU-seconds); the model on the CPU, wherever it
+    trained (``device``, scenegen/devices.py)."""
     from tqdm import tqdm
 
     from scenegen.devices import resolve_device
@@ -273,7 +286,7 @@ def train_separator(
     torch.manual_seed(seed)
     started = time.process_time()
     rng = np.random.default_rng([seed, 43])
-    model = Separator(width, len(inputs[0])).to(on)
+    model = Separator(width, len(inputs[0]), 1 if objects is None else 2).to(on)
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     p = np.asarray(weights, float) / np.sum(weights)
     anywhere = [np.argwhere(y >= 0) for y in labels]
@@ -286,7 +299,7 @@ def train_separator(
             group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * step / steps))
         frames = rng.choice(len(inputs), size=batch, p=p)
         on_contact = rng.choice(len(inputs), size=batch, p=q)
-        xs, ys = [], []
+        xs, ys, os_ = [], [], []
         for k in range(batch):
             f = on_contact[k] if k % 2 == 0 and contacts[on_contact[k]] else frames[k]
             groups = contacts[f]
@@ -294,20 +307,30 @@ def train_separator(
             r, c = _patch_corner(pool, labels[f].shape, rng)
             x = inputs[f][:, r : r + PATCH, c : c + PATCH]
             y = labels[f][r : r + PATCH, c : c + PATCH]
+            o = None if objects is None else objects[f][r : r + PATCH, c : c + PATCH]
             if rng.random() < 0.5:
                 x, y = x[:, :, ::-1], y[:, ::-1]
+                o = None if o is None else o[:, ::-1]
             xs.append(np.ascontiguousarray(x, dtype=np.float32))
             ys.append(np.ascontiguousarray(y))
+            if o is not None:
+                os_.append(np.ascontiguousarray(o))
         x, y = torch.from_numpy(np.stack(xs)), torch.from_numpy(np.stack(ys)).long()
         x[:, :3] = (
             x[:, :3] * torch.from_numpy(rng.uniform(0.35, 1.25, (batch, 1, 1, 1)).astype(np.float32))
         ).clamp(0, 1)
         x, y = x.to(on), y.to(on)
         weight = torch.where(y == 0, BOUNDARY_WEIGHT, 1.0) * (y >= 0)
-        logits = model(x)[:, 0]
+        out = model(x)
         loss = (
-            F.binary_cross_entropy_with_logits(logits, (y == 1).float(), reduction="none") * weight
+            F.binary_cross_entropy_with_logits(out[:, 0], (y == 1).float(), reduction="none") * weight
         ).sum() / weight.sum().clamp(min=1.0)
+        if objects is not None:  # the object map, over every scored pixel of the crops
+            o = torch.from_numpy(np.stack(os_)).to(on)
+            scored = (o >= 0).float()
+            loss = loss + (
+                F.binary_cross_entropy_with_logits(out[:, 1], (o == 1).float(), reduction="none") * scored
+            ).sum() / scored.sum().clamp(min=1.0)
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -318,27 +341,36 @@ def train_separator(
 
 def separator_frames(
     scenes, frames, channels: int = CHANNELS, rule=None
-) -> tuple[list, list, list, list[int]]:
+) -> tuple[list, list, list, list[int], list | None]:
     """The separator's training frames of ``scenes``: per camera frame its input (float16, see
     :func:`separator_input`), its labels (:func:`interior_labels`), its contacts
     (:func:`contact_groups`) and its scene's position; the
     robot's pixels and the instance ids come from the frames' segmentation (training only).
-    ``rule``: the region step's ``regions.DepthRule`` (frames come mended by it)."""
+    ``rule``: the region step's ``regions.DepthRule`` (frames come mended by it). Under a
+    ``learned`` rule also each frame's object labels (int8: 1 a pixel of an object or a piece of
+    furniture, 0 the table's, -1 off the table or the robot's), else None; the interior labels
+    then cover the objects' pixels."""
+    from scenegen.perception.observation import BACKGROUND
     from scenegen.perception.retrieval.regions import DepthRule, robot_pixels
 
     rule = rule or DepthRule()
-
     inputs, labels, contacts, scene_of = [], [], [], []
+    objects = [] if rule.learned else None
     for i, (scene, f) in enumerate(zip(scenes, frames, strict=True)):
         cameras = {c.name: c for c in scene.cameras}
         robot = robot_pixels(f, scene)
+        background = [scene.segmentation[name] for name in BACKGROUND]
         for k, name in enumerate(f.cameras):
             keep, height = rule.foreground(f.depth[k], robot[k], cameras[name])
             inputs.append(separator_input(f.rgb[k], f.depth[k], keep, height, channels).astype(np.float16))
+            if objects is not None:
+                thing = keep & ~np.isin(f.seg[k], background)
+                objects.append(np.where(keep, thing, -1).astype(np.int8))
+                keep = thing
             labels.append(interior_labels(f.seg[k], keep, height))
             contacts.append(contact_groups(f.seg[k], labels[-1]))
             scene_of.append(i)
-    return inputs, labels, contacts, scene_of
+    return inputs, labels, contacts, scene_of, objects
 
 
 def load_separator(folder, config: dict, remedy: str, rule=None) -> SeparatorRegions:
@@ -356,7 +388,11 @@ def load_separator(folder, config: dict, remedy: str, rule=None) -> SeparatorReg
         check_channels(channels)
     except ValueError as exc:
         raise checkpoint_error(Path(folder) / "config.json", exc, remedy) from None
-    model = Separator(int_field(spec, "width", folder, 2, 64), channels)
+    outputs = spec.get("outputs", 1)  # saved before learned foregrounds: 1
+    if type(outputs) is not int or outputs not in (1, 2):
+        problem = ValueError(f"separator outputs {outputs!r}: 1 or 2")
+        raise checkpoint_error(Path(folder) / "config.json", problem, remedy)
+    model = Separator(int_field(spec, "width", folder, 2, 64), channels, outputs)
     try:
         model.load_state_dict(load_file(str(Path(folder) / "separator.safetensors")))
     except Exception as exc:  # noqa: BLE001 - safetensors' own error type, shape mismatches, I/O
