@@ -84,3 +84,22 @@ def test_a_depth_rule_is_read_from_a_checkpoint_config_or_refused_in_one_line():
         with pytest.raises(ValueError, match=message) as caught:
             DepthRule.from_config(spec, "c.json")
         assert str(caught.value).startswith("c.json: ") and len(str(caught.value).splitlines()) == 1
+
+
+def test_a_learned_field_holds_every_pixel_whose_ray_meets_the_table_whatever_its_depth_reads(table):
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, TABLE_HALF, table_rays
+
+    frame, camera = table
+    top = (frame.seg == frame.ids["table"]) & (frame.exact > 0)
+    rays = table_rays(camera, frame.exact.shape)
+    assert rays[top].all() and not table_rays(camera, frame.exact.shape, margin=-0.6).any()
+    narrow = table_rays(camera, frame.exact.shape, margin=-0.2)
+    assert 0 < narrow.sum() < rays.sum()
+    wrong = np.where(top, 5.0, frame.exact).astype(np.float32)  # the sensor read the floor, far below
+    rule = DEPTH_RULES["learned"]
+    nobody = np.zeros_like(top)
+    keep, _ = rule.foreground(wrong, nobody, camera)
+    assert keep[top].all()  # off the table by its depth, on it by its ray
+    keep, _ = DEPTH_RULES["mended_5mm"].foreground(wrong, nobody, camera)
+    assert not keep[top].any()
+    assert TABLE_HALF == (0.4, 0.5)

@@ -52,6 +52,28 @@ def foreground(
     return on_table & (lift > above), lift
 
 
+RAYS_MARGIN = 0.3  # m past the table's edges where a pixel's ray may meet its plane (a tall object's top)
+
+
+def table_rays(camera, shape: tuple[int, int], margin: float = RAYS_MARGIN) -> np.ndarray:
+    """(H, W) bool: the pixels whose viewing rays meet the table top's plane within ``margin`` of
+    its edges, in front of the camera: where an object on the table can appear, whatever its depth
+    reads (a tall object near the far edge rises above the table's own image; the margin keeps it)."""
+    height, width = shape
+    ones = np.ones(shape, np.float32)
+    far = masked_points(ones, ones > 0, camera).reshape(height, width, 3)  # 1 m along the optical axis
+    origin = np.asarray(camera.position, float)
+    ray = far - origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (TABLE_TOP - origin[2]) / ray[..., 2]
+    hit = origin[:2] + t[..., None] * ray[..., :2]
+    return (
+        (t > 0)
+        & (np.abs(hit[..., 0]) <= TABLE_HALF[0] + margin)
+        & (np.abs(hit[..., 1]) <= TABLE_HALF[1] + margin)
+    )
+
+
 def _table_plane(points: np.ndarray, on_table: np.ndarray, band: float = 0.02) -> np.ndarray:
     """(H, W) the height of the plane fitted (least squares, twice: the second time without the
     points more than 2.5 sigma off the first) to the points within ``band`` m of the table top, at
@@ -83,6 +105,7 @@ class DepthRule:
     robot_margin: int = 0
     table_fit: bool = False
     learned: bool = False  # no height threshold: every table pixel is the separator's to call object or table
+    table_rays: bool = False  # a learned field also holds the pixels whose rays meet the table (wrong depth)
 
     def __post_init__(self):
         if self.median not in (0, 3, 5):
@@ -123,7 +146,10 @@ class DepthRule:
         """:func:`foreground` of an already mended ``depth`` under this rule; a ``learned`` rule's is
         every pixel on the table (the separator's object map then says which are objects)."""
         above = -np.inf if self.learned else self.above
-        return foreground(depth, robot_mask, camera, above, self.robot_margin, self.table_fit)
+        keep, lift = foreground(depth, robot_mask, camera, above, self.robot_margin, self.table_fit)
+        if self.learned and self.table_rays:  # where the sensed point is off the table, the ray may not be
+            keep = keep | (table_rays(camera, depth.shape) & ~robot_mask)
+        return keep, lift
 
     def config(self) -> dict:
         return asdict(self)
@@ -141,6 +167,7 @@ class DepthRule:
             "robot_margin": int,
             "table_fit": bool,
             "learned": bool,
+            "table_rays": bool,
         }
         for key, value in spec.items():
             ok = isinstance(value, kinds[key]) or (kinds[key] is float and type(value) is int)
@@ -158,7 +185,7 @@ DEPTH_RULES = {
     "exact": DepthRule(),
     "mended_5mm": DepthRule(fill=True, median=5, above=0.005, robot_margin=4, table_fit=True),
     "mended_8mm": DepthRule(fill=True, median=5, above=0.008, robot_margin=4, table_fit=True),
-    "learned": DepthRule(fill=True, median=5, robot_margin=4, table_fit=True, learned=True),
+    "learned": DepthRule(fill=True, median=5, table_fit=True, learned=True, table_rays=True),
 }
 SENSOR_RULE = "mended_5mm"  # the rule `retrieval train --sensor` uses unless told (chosen on validation)
 

@@ -245,6 +245,21 @@ def _patch_corner(pool: np.ndarray, shape: tuple[int, int], rng: np.random.Gener
     return int(np.clip(r - PATCH // 2, 0, height - PATCH)), int(np.clip(c - PATCH // 2, 0, width - PATCH))
 
 
+def _pieces(mask: np.ndarray) -> list[np.ndarray]:
+    """The 8-connected pieces of ``mask``, each (N, 2) rows and columns; one empty array for none."""
+    import cv2
+
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    if count <= 1:
+        return [np.zeros((0, 2), np.int64)]
+    rows, cols = np.nonzero(labels)
+    owner = labels[rows, cols]
+    order = np.argsort(owner, kind="stable")
+    bounds = np.searchsorted(owner[order], np.arange(1, count + 1))
+    both = np.stack([rows[order], cols[order]], 1)
+    return [both[bounds[i] : bounds[i + 1]] for i in range(count - 1)]
+
+
 def contact_groups(seg: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
     """A frame's boundary pixels, (N, 2) rows and columns, one group per instance they belong to
     (one per contact with what lies on it, as a rule)."""
@@ -289,7 +304,10 @@ def train_separator(
     model = Separator(width, len(inputs[0]), 1 if objects is None else 2).to(on)
     optimiser = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
     p = np.asarray(weights, float) / np.sum(weights)
-    anywhere = [np.argwhere(y >= 0) for y in labels]
+    if objects is None:
+        anywhere = [[np.argwhere(y >= 0)] for y in labels]
+    else:  # a learned foreground: each object piece with equal chance (a fork's 60 px as a box's 1,000)
+        anywhere = [_pieces(o == 1) for o in objects]
     touching = np.array([bool(c) for c in contacts])
     q = np.where(touching, p, 0.0)
     q = q / q.sum() if q.sum() > 0 else p
@@ -303,7 +321,11 @@ def train_separator(
         for k in range(batch):
             f = on_contact[k] if k % 2 == 0 and contacts[on_contact[k]] else frames[k]
             groups = contacts[f]
-            pool = groups[rng.integers(len(groups))] if k % 2 == 0 and groups else anywhere[f]
+            if k % 2 == 0 and groups:
+                pool = groups[rng.integers(len(groups))]
+            else:
+                pieces = anywhere[f]
+                pool = pieces[rng.integers(len(pieces))] if len(pieces) > 1 else pieces[0]
             r, c = _patch_corner(pool, labels[f].shape, rng)
             x = inputs[f][:, r : r + PATCH, c : c + PATCH]
             y = labels[f][r : r + PATCH, c : c + PATCH]
