@@ -73,3 +73,21 @@ def test_tiny_curves_train_score_and_report(tmp_path: Path):
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert image.shape == (720, 1400, 3) and (image < 250).any()
     json.dumps(results)  # the benchmark writes it as JSON
+
+
+def test_a_curve_job_through_a_sensor_trains_and_scores_on_its_frames_under_its_depth_rule(tmp_path: Path):
+    from scenegen.perception.retrieval.frames import FrameCache, frames_key
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, SENSOR_RULE
+
+    scored = {name: scenes[:1] for name, scenes in scoring_scenes().items()}
+    cache, heads = tmp_path / "frames", tmp_path / "heads"
+    job = CurveJob("instances", "natural", 6, 0)
+    record = run_job(job, heads, cache, scored, {"classifier": 10, "separator": 100}, sensor="active_stereo")
+    assert len(record["rows"]) == 2
+    config = json.loads((heads / job.name / "config.json").read_text())
+    assert config["depth_rule"] == DEPTH_RULES[SENSOR_RULE].config()
+    store = FrameCache(cache)
+    for scene in training_sets(6)["natural"]:
+        sensed = store.get(frames_key(scene, sensor="active_stereo"))
+        assert sensed is not None and (sensed.depth == 0).any()  # the sensor's frames, with its holes
+        assert store.get(frames_key(scene)) is None  # and no exact ones

@@ -187,7 +187,7 @@ DEPTH_RULES = {
     "mended_8mm": DepthRule(fill=True, median=5, above=0.008, robot_margin=4, table_fit=True),
     "learned": DepthRule(fill=True, median=5, table_fit=True, learned=True, table_rays=True),
 }
-SENSOR_RULE = "mended_5mm"  # the rule `retrieval train --sensor` uses unless told (chosen on validation)
+SENSOR_RULE = "learned"  # the rule `retrieval train --sensor` uses unless told (chosen on validation)
 
 
 def rule_name_for(sensor: str) -> str:
