@@ -70,7 +70,12 @@ def add_commands(sub) -> None:
     tr.add_argument(
         "--batch-size", type=int, default=8, help="segmenter: scenes per step, each with both cameras"
     )
-    tr.add_argument("--width", type=int, default=8, help="segmenter: channels of the first level (default 8)")
+    tr.add_argument(
+        "--width",
+        type=int,
+        default=8,
+        help="segmenter, and the instances design's separator: channels of the first level (default 8)",
+    )
     tr.add_argument(
         "--depth-rule",
         choices=tuple(DEPTH_RULES),
@@ -203,6 +208,8 @@ def retrieval_train(args: argparse.Namespace) -> int:
             from scenegen.perception.retrieval.regions import DEPTH_RULES, rule_name_for
 
             extra = {"progress": not args.quiet, "separator_steps": args.separator_steps}
+            if args.width != 8:
+                extra["width"] = args.width
             rule = args.depth_rule or rule_name_for(args.sensor)
             if rule != "exact":  # exact's call stays as it was (a retrained default keeps its bytes)
                 extra["rule"] = DEPTH_RULES[rule]
