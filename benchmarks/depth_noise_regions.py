@@ -22,27 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
+from scenegen.perception.retrieval import regions
+
 RESULTS = Path(__file__).parent / "results" / "depth_noise_regions.json"
 RARE = ("near_edge", "toppled", "occluded", "clutter", "stacked", "low_light")
 TABLE_TOP_TOL = 0.001  # m: a table-top pixel's exact world point lies within this of the top
 ABOVE_MM = (5, 8, 12)  # foreground thresholds tried on the filled, smoothed depth
 
 
-def filled(depth: np.ndarray) -> np.ndarray:
-    """Missing pixels (0) take their nearest valid neighbour's depth."""
-    from scipy.ndimage import distance_transform_edt
-
-    missing = depth <= 0
-    if not missing.any():
-        return depth
-    _, (rows, cols) = distance_transform_edt(missing, return_indices=True)
-    return depth[rows, cols]
-
-
-def median5(depth: np.ndarray) -> np.ndarray:
-    import cv2
-
-    return cv2.medianBlur(depth.astype(np.float32), 5)
+FILL, MEDIAN5 = regions.DepthRule(fill=True), regions.DepthRule(median=5)  # the head's own mending
 
 
 def frame_rows(scene, observations: dict, sensed: dict, cameras) -> list[dict]:
@@ -67,15 +55,15 @@ def frame_rows(scene, observations: dict, sensed: dict, cameras) -> list[dict]:
             & (np.abs(world[..., 0]) <= regions.TABLE_HALF[0])
             & (np.abs(world[..., 1]) <= regions.TABLE_HALF[1])
         )
-        mended = filled(noisy)
+        mended = FILL.mend(noisy)
         variants = {
             "exact": exact,
             "noisy": noisy,
             "noisy, holes filled": mended,
-            "noisy, holes filled, median 5": median5(mended),
+            "noisy, holes filled, median 5": MEDIAN5.mend(mended),
         }
         rules = {name: {} for name in variants}
-        smooth = median5(mended)
+        smooth = MEDIAN5.mend(mended)
         for mm in ABOVE_MM:  # the foreground's height threshold, for a sensor whose depth is not exact
             variants[f"noisy, filled, median 5, above {mm} mm"] = smooth
             rules[f"noisy, filled, median 5, above {mm} mm"] = {"above": mm / 1000}

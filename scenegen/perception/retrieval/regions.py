@@ -157,18 +157,9 @@ class DepthRule:
     @classmethod
     def from_config(cls, spec, where) -> DepthRule:
         """The rule a checkpoint's config.json states (ValueError naming ``where`` when malformed)."""
-        known = {f.name: f.type for f in fields(cls)}
-        if not isinstance(spec, dict) or set(spec) - set(known):
-            raise ValueError(f"{where}: depth_rule must be an object with keys {', '.join(known)}")
-        kinds = {
-            "fill": bool,
-            "median": int,
-            "above": float,
-            "robot_margin": int,
-            "table_fit": bool,
-            "learned": bool,
-            "table_rays": bool,
-        }
+        kinds = {f.name: type(f.default) for f in fields(cls)}  # bool, int or float
+        if not isinstance(spec, dict) or set(spec) - set(kinds):
+            raise ValueError(f"{where}: depth_rule must be an object with keys {', '.join(kinds)}")
         for key, value in spec.items():
             ok = isinstance(value, kinds[key]) or (kinds[key] is float and type(value) is int)
             if not ok or (kinds[key] is int and type(value) is bool):
