@@ -14,8 +14,6 @@ SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py
 
 
 def add_commands(sub) -> None:
-    from scenegen.perception.retrieval.regions import DEPTH_RULES
-
     ret = sub.add_parser(
         "retrieval",
         help="train the retrieval head (RGB-D + category -> the target's pixels); measure it offline",
@@ -24,6 +22,13 @@ def add_commands(sub) -> None:
         "are rendered once per scene and cached by content (--cache).",
     )
     cmds = ret.add_subparsers(dest="retrieval_command", metavar="COMMAND", required=True)
+    _add_train(cmds)
+    _add_eval(cmds)
+
+
+def _add_train(cmds) -> None:
+    from scenegen.perception.retrieval.regions import DEPTH_RULES
+
     tr = cmds.add_parser(
         "train",
         help="train a retrieval head on scene sources (safetensors checkpoint)",
@@ -88,6 +93,8 @@ def add_commands(sub) -> None:
     _common(tr)
     tr.set_defaults(run=retrieval_train)
 
+
+def _add_eval(cmds) -> None:
     ev = cmds.add_parser(
         "eval",
         help="per-tag IoU, hit, wrong-object, miss and false-alarm rates of a retrieval head",
