@@ -31,6 +31,7 @@ import numpy as np
 from scenegen.env.physics import ControlPhysics, physics_mark
 from scenegen.env.scenes import EnvScene
 from scenegen.manipulation.primitives import PRIMITIVES
+from scenegen.manipulation.proposals import ACTIONS, SAMPLER_VERSION, Candidate
 from scenegen.store.batch import atomic_write, recover_jsonl
 
 
@@ -99,6 +100,15 @@ def decision_token(name: str, plan: dict | None, physics: ControlPhysics | None 
     under, ``physics_mark``: nothing for ``exact``) and its plan."""
     mark = "" if physics is None else physics_mark(physics)
     return f"{name}@{PRIMITIVES[name].version}{mark}:{plan_digest(plan)}"
+
+
+def candidate_token(candidate: Candidate, physics: ControlPhysics | None = None) -> str:
+    """What a proposal decision executes: the action, its executor's and the sampler's versions
+    (``grasp@1s1``), the physics mark and the candidate's parameters; a path key's token as
+    :func:`decision_token` is, so proposal attempts live in the same store."""
+    mark = "" if physics is None else physics_mark(physics)
+    version = f"{ACTIONS[candidate.action].version}s{SAMPLER_VERSION}"
+    return f"{candidate.action}@{version}{mark}:{plan_digest(candidate.params)}"
 
 
 def path_key(sha: str, tokens: Sequence[str]) -> str:

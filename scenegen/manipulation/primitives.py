@@ -58,7 +58,8 @@ class Primitive:
 
 
 PRIMITIVES: dict[str, Primitive] = {}
-DIRECTIONS = ("closing", "approach")  # the plans' unit vectors in the table plane; the rest is metres
+# the plans' unit vectors in the table plane; strings are kept as they are, the rest is metres
+DIRECTIONS = ("closing", "approach", "heading", "direction")
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,9 @@ class PlanGrid:
 
         out = {}
         for name, value in plan.items():
-            if name in DIRECTIONS:
+            if isinstance(value, str):
+                out[name] = value
+            elif name in DIRECTIONS:
                 step = np.radians(self.degrees)
                 heading = round(float(np.arctan2(value[1], value[0])) / step) * step
                 # + 0.0: -0.0 and 0.0 (a heading of -180 and 180 degrees) are one plan
@@ -115,7 +118,7 @@ def primitive(name: str, version: int):
     return register
 
 
-def _close_at(env, position, rotation, step, approach=None) -> None:
+def close_at(env, position, rotation, step, approach=None) -> None:
     """Approach (if given), move to the grasp pose open and close the hand."""
     if approach is not None:
         servo(env, approach, rotation, OPEN, max_steps=100, step=step)
@@ -123,7 +126,7 @@ def _close_at(env, position, rotation, step, approach=None) -> None:
     hold(env, CLOSE, CLOSE_STEPS, step=step)
 
 
-def _lift_and_hold(env, rotation, step) -> None:
+def lift_and_hold(env, rotation, step) -> None:
     """Raise the closed hand ``LIFT`` from where it is and hold it there."""
     here, _ = grip_site(env)
     servo(env, here + np.array([0.0, 0.0, LIFT]), rotation, CLOSE, max_steps=60, speed=0.4, step=step)
@@ -132,8 +135,8 @@ def _lift_and_hold(env, rotation, step) -> None:
 
 def _grasp_and_lift(env, position, rotation, step, approach=None) -> None:
     """Approach (if given), move to the grasp pose open, close, lift ``LIFT`` and hold."""
-    _close_at(env, position, rotation, step, approach)
-    _lift_and_hold(env, rotation, step)
+    close_at(env, position, rotation, step, approach)
+    lift_and_hold(env, rotation, step)
 
 
 # ------------------------------------------------------------------------------------------ top grasp
@@ -334,10 +337,10 @@ HELD_GAP = 0.01  # m: fingers commanded closed but this far apart hold the targe
 @primitive("pull_out_then_grasp", version=3)(plan_pull_out)
 def execute_pull_out(env, params: dict, step=None, look=None, grid=None) -> None:
     rotation = _side_standoff(env, params, step)
-    _close_at(env, params["position"], rotation, step)
+    close_at(env, params["position"], rotation, step)
     servo(env, params["pulled"], rotation, CLOSE, max_steps=120, speed=0.3, step=step)
     if finger_gap(env) > HELD_GAP:  # still held, out in the open: lift it as it is
-        _lift_and_hold(env, rotation, step)
+        lift_and_hold(env, rotation, step)
         return
     hold(env, OPEN, CLOSE_STEPS, step=step)  # lost on the way: let go, back off, grasp it anew
     here, _ = grip_site(env)

@@ -4,6 +4,7 @@ The observation is rendered once, at the decision point, before the primitive (o
 from __future__ import annotations
 
 from scenegen.manipulation.primitives import PRIMITIVES, PlanGrid, make_plan
+from scenegen.manipulation.proposals import Candidate, execute
 from scenegen.manipulation.task import RetrieveMonitor, RetrieveOutcome
 from scenegen.perception.observation import KINDS, observe, observe_state
 
@@ -59,3 +60,24 @@ def run_primitive(
     look = look or (lambda: observe(env, perception, image))
     chosen.execute(env, params, step=step, look=look, grid=grid)
     return monitor.outcome, params
+
+
+def run_candidate(
+    env, candidate: Candidate, recorder=None, episode: tuple[float, float] | None = None
+) -> RetrieveOutcome:
+    """Execute a proposal ``candidate`` from the environment's current
+    state; its outcome as the simulator measured it. ``episode`` as for :func:`run_primitive`. A
+    push or pull that does not lift the target ends without success: the next decision is a new
+    observation and a new proposal."""
+    start, settled_z = episode if episode is not None else (None, None)
+    monitor = RetrieveMonitor(env, start=start, settled_z=settled_z)
+
+    def step(action):
+        if recorder is not None:
+            recorder.step(action)
+        else:
+            env.step(action)
+        monitor.update()
+
+    execute(env, candidate, step=step)
+    return monitor.outcome

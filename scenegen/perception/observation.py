@@ -34,6 +34,9 @@ class TargetView:
     others: np.ndarray
     robot_base: tuple[float, float] = (-0.56, 0.0)
     hand_closing: tuple[float, float] = (0.0, 1.0)  # the fingers' closing axis now, (x, y) (proprioception)
+    target_points: np.ndarray | None = (
+        None  # (M, 3) the target's visible world points (what ``target`` sums up)
+    )
 
 
 CAMERAS = ("front", "side")  # what the planners observe
@@ -63,12 +66,13 @@ def observe(env, perception=None, image: bool = True) -> tuple[dict, TargetView 
         target.append(target_points(depth, seg, scene.target_id, cameras[name]))
         for instance in set(np.unique(seg)) - background - {0, scene.target_id}:
             others.append(target_points(depth, seg, int(instance), cameras[name]))
-    estimate = estimate_target(np.concatenate(target))
+    seen = np.concatenate(target)
+    estimate = estimate_target(seen)
     if estimate is None:
         return obs, None
     points = np.concatenate(others) if others else np.zeros((0, 3))
     base, closing = _robot_state(env)
-    return obs, TargetView(estimate, points, base, closing)
+    return obs, TargetView(estimate, points, base, closing, seen)
 
 
 TABLE_MARGIN = 0.05  # m beyond the table's edges where points still count (an overhanging object)
@@ -96,11 +100,12 @@ def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
             & (np.abs(rest[:, 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
         )
         others.append(rest[on_table])
-    estimate = estimate_target(np.concatenate(target))
+    seen = np.concatenate(target)
+    estimate = estimate_target(seen)
     if estimate is None:
         return obs, None
     base, closing = _robot_state(env)
-    return obs, TargetView(estimate, np.concatenate(others), base, closing)
+    return obs, TargetView(estimate, np.concatenate(others), base, closing, seen)
 
 
 def _robot_state(env) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -144,7 +149,8 @@ def observe_state(env) -> tuple[dict, TargetView]:
     base, closing = _robot_state(env)
     points = np.concatenate(others) if others else np.zeros((0, 3))
     position, quat = env.target_pose()
-    return {"target_pos": position, "target_quat": quat}, TargetView(estimate, points, base, closing)
+    view = TargetView(estimate, points, base, closing, target)
+    return {"target_pos": position, "target_quat": quat}, view
 
 
 CATEGORIES = ("bottle", "bowl", "box", "can", "fork", "knife", "mug", "plate", "spoon")
