@@ -52,7 +52,7 @@ from scenegen.schema.condition import RARE_TAGS
 
 
 # ------------------------------------------------------------------------------------------- workers
-def _env(scene: EnvScene, physics: ControlPhysics):
+def episode_env(scene: EnvScene, physics: ControlPhysics):
     from scenegen.env.robosuite_env import worker_env
 
     options = {"cameras": CAMERAS, "camera_size": CAMERA_SIZE, "render_each_step": False, "horizon": HORIZON}
@@ -82,7 +82,7 @@ def _perception(retrieval: Path | None):
     return _PERCEPTIONS[str(retrieval)]
 
 
-def _state(env, qpos: Sequence[float] | None) -> None:
+def set_state(env, qpos: Sequence[float] | None) -> None:
     """Put the environment at ``qpos`` (None: leave it at the settled state), at rest."""
     if qpos is None:
         return
@@ -116,7 +116,7 @@ def simulate(
 
     physics = physics_named(physics)
     perception = _perception(retrieval)
-    env = _env(scene, physics)
+    env = episode_env(scene, physics)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     data = env.sim.data._data
     start = float(data.time)
@@ -198,10 +198,10 @@ def observe(
     from scenegen.policy.train import policy_input
 
     physics = physics_named(physics)
-    env = _env(scene, physics)
+    env = episode_env(scene, physics)
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene))
-    _state(env, qpos)
+    set_state(env, qpos)
     variant.sense(env, point)
     obs, view = look(env, perception)
     plans = {
@@ -233,10 +233,10 @@ def regrasp_plan(
     from scenegen.perception.observation import observe as look
 
     physics = physics_named(physics)
-    env = _env(scene, physics)
+    env = episode_env(scene, physics)
     perception = _perception(retrieval)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
-    _state(env, qpos)
+    set_state(env, qpos)
     variant.sense(env, point)
     _, view = look(env, perception)
     return plan_digest(None if view is None else make_plan("top_grasp", view, grid))
@@ -287,15 +287,17 @@ class Workers:
         if self.pool is not None:
             self.pool.shutdown(cancel_futures=True)
 
-    def map(self, jobs: list[tuple]) -> Iterator[tuple]:
+    def map(self, jobs: list[tuple], run=None) -> Iterator[tuple]:
         """``(kind, result, CPU seconds)`` of each ``(kind, scene, arguments)`` job, in order, under
-        this pool's physics."""
+        this pool's physics; ``run``: the module-level function that does one (default: the closed
+        loop's observe, regrasp and simulate jobs)."""
         if not jobs:
             return iter(())
+        run = run or _job
         jobs = [(*job, self.physics) for job in jobs]
         if self.pool is None:
-            return map(_job, jobs)
-        return self.pool.map(_job, jobs, chunksize=1)
+            return map(run, jobs)
+        return self.pool.map(run, jobs, chunksize=1)
 
 
 # ---------------------------------------------------------------------------------------- evaluation

@@ -1,0 +1,276 @@
+"""Labels for the proposal model (issue 63, point 2): every candidate the sampler proposes at a
+layout's first decision, executed through the controller from the settled state, its success by the
+task monitor's rule.
+
+A candidate's attempt is a row of the sequence store (:class:`~scenegen.experiment.sequences.PathStore`,
+keyed by the scene and the candidates executed, ``candidate_token``: action, executor and sampler
+versions, the physics, the parameters on the plan grid), so a closed loop that executes the same
+candidate later reads it instead of simulating, and a model's offline figure is a lookup of the
+candidate it ranks first. What was proposed at a decision point is kept in an
+:class:`~scenegen.experiment.sequences.ObservationStore` (its meta: the candidates), so a rerun
+proposes nothing twice.
+
+A push or a pull ends its decision: its value is what a next decision can make of it. Where no
+grasp of the first decision lifts the target, each push and pull is followed by the sampler's
+grasps (``LabelConfig.follow``) proposed from the observation at the state it left, each executed
+after it: the sequence [push, grasp] is a row of the same store. Elsewhere a push or pull keeps its
+own row only (a grasp alone already works there).
+
+The labels are seen through the oracle (the simulator's instance masks: the action side alone).
+Resumable: every result is stored as it comes; a rerun, after a kill or with more scenes, runs only
+what the stores lack. No wall-clock data enters a row.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_named
+from scenegen.env.scenes import EnvScene, scene_sha256
+from scenegen.experiment.closed_loop import Workers, episode_env, set_state
+from scenegen.experiment.sequences import (
+    NOMINAL,
+    SEQUENCE_RULES,
+    ObservationStore,
+    PathStore,
+    candidate_token,
+    path_key,
+)
+from scenegen.manipulation.primitives import PlanGrid
+from scenegen.manipulation.proposals import SAMPLER_VERSION, Candidate, SamplerConfig, sample_candidates
+from scenegen.policy.failures import attempt_features
+
+GRID = PlanGrid(metres=0.005, degrees=10.0)  # candidates closer than this are one attempt
+FOLLOW = SamplerConfig(top=4, side=2, push=0, pull=0)
+
+
+@dataclass(frozen=True)
+class LabelConfig:
+    """What is proposed at a layout's first decision (``sampler``) and after a push or pull where
+    no grasp worked (``follow``), on ``grid``, drawn from ``seed``."""
+
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    follow: SamplerConfig = FOLLOW
+    grid: PlanGrid = GRID
+    seed: int = 0
+
+    def inputs(self, sampler: SamplerConfig) -> str:
+        """The observation store's input kind of a decision point proposed by ``sampler``."""
+        counts = f"{sampler.top}.{sampler.side}.{sampler.push}.{sampler.pull}"
+        return f"proposals:s{SAMPLER_VERSION}:{counts}:{self.grid.key()}:seed{self.seed}"
+
+
+def point_rng(seed: int, sha: str, tokens: Sequence[str]) -> np.random.Generator:
+    """The sampler's random stream at a decision point: the seed and the point (scene and the
+    attempts before it), so any process and any order draws the same candidates there."""
+    digest = hashlib.sha256(path_key(sha, tokens).encode()).digest()
+    return np.random.default_rng([seed, int.from_bytes(digest[:8], "little")])
+
+
+# ------------------------------------------------------------------------------------------- jobs
+def propose(
+    scene: EnvScene,
+    qpos: Sequence[float] | None,
+    tokens: Sequence[str],
+    sampler: SamplerConfig,
+    config: LabelConfig,
+    physics: ControlPhysics,
+) -> list[dict]:
+    """The candidates (as dicts) the sampler proposes at ``scene``'s decision point after ``tokens``
+    (the state ``qpos``; None: the settled state), seen through the oracle; [] if the target is not
+    seen."""
+    from scenegen.perception.observation import observe
+
+    env = episode_env(scene, physics)
+    env.reset_to(scene)
+    set_state(env, qpos)
+    _, view = observe(env, image=False)
+    if view is None:
+        return []
+    rng = point_rng(config.seed, scene_sha256(scene), tokens)
+    return [c.as_dict() for c in sample_candidates(view, rng, sampler, config.grid)]
+
+
+def simulate_candidates(
+    scene: EnvScene, sequence: Sequence[Candidate], physics: ControlPhysics
+) -> list[dict]:
+    """Execute ``sequence`` from ``scene``'s settled state under ``physics``; one store row per
+    attempt (the sequence up to and including it), as :func:`closed_loop.simulate` writes them,
+    plus the candidate executed."""
+    from scenegen.env.episodes import EpisodeRecorder
+    from scenegen.manipulation.rollout import run_candidate
+
+    env = episode_env(scene, physics)
+    env.reset_to(scene)
+    data = env.sim.data._data
+    start = float(data.time)
+    episode = (start, float(env.target_pose()[0][2]))
+    recorder = EpisodeRecorder(env, "candidates", observation_kind="rgbd")
+    sha, rows, tokens = scene_sha256(scene), [], []
+    for k, candidate in enumerate(sequence):
+        recorder.decide({}, {"primitive": candidate.action, "observation_kind": "rgbd"})
+        outcome = run_candidate(env, candidate, recorder, episode=episode)
+        decision = candidate_token(candidate, physics)
+        tokens.append(decision)
+        features = attempt_features(recorder.snapshot(), scene.target_id, k, outcome.other_touched)
+        rows.append(
+            {
+                "key": path_key(sha, tokens),
+                "rules": SEQUENCE_RULES,
+                "scene_sha256": sha,
+                "prefix": [c.action for c in sequence[: k + 1]],
+                "tokens": list(tokens),
+                "decision": decision,
+                "regrasp": None,
+                "candidate": candidate.as_dict(),
+                "success": bool(outcome.success),
+                "success_time": None if outcome.success_time is None else round(outcome.success_time, 6),
+                "time": round(float(data.time) - start, 6),
+                "features": {k: v for k, v in features.items() if k not in ("mask_pixels", "mask_missed")},
+                "qpos": data.qpos.tolist(),
+            }
+        )
+        if outcome.success:
+            break
+    return rows
+
+
+def _job(job: tuple) -> tuple:
+    """One labelling job for a worker: (kind, result, CPU seconds)."""
+    kind, scene, arg, physics = job
+    began = time.process_time()
+    if kind == "propose":  # (key, qpos, tokens, sampler, config)
+        key, *rest = arg
+        result = (key, propose(scene, *rest, physics=physics))
+    else:  # "simulate": the candidates' dicts, in order
+        result = simulate_candidates(scene, [Candidate.from_dict(c) for c in arg], physics)
+    return kind, result, time.process_time() - began
+
+
+# ------------------------------------------------------------------------------------------ labels
+@dataclass
+class LabelCost:
+    """What a labelling run did: candidates simulated and served from the store, CPU per kind."""
+
+    simulated: int = 0
+    stored: int = 0
+    cpu: dict = field(default_factory=lambda: {"propose": 0.0, "simulate": 0.0})
+
+    def per_candidate(self) -> float | None:
+        return self.cpu["simulate"] / self.simulated if self.simulated else None
+
+
+def _proposed(views: ObservationStore, sha: str, tokens: Sequence[str], inputs: str) -> list[dict] | None:
+    meta = views.meta(ObservationStore.key(sha, tokens, NOMINAL, inputs))
+    return None if meta is None else meta["candidates"]
+
+
+def _propose_missing(points, views, config, workers, cost, progress) -> None:
+    """Propose at each ``(scene, qpos, tokens, sampler)`` decision point the view store lacks."""
+    wanted = {}
+    for scene, qpos, tokens, sampler in points:
+        sha = scene_sha256(scene)
+        key = ObservationStore.key(sha, tokens, NOMINAL, config.inputs(sampler))
+        if views.meta(key) is None:
+            wanted[key] = ("propose", scene, (key, qpos, list(tokens), sampler, config))
+    for kind, (key, candidates), seconds in workers.map(list(wanted.values()), run=_job):
+        views.put(key, None, {"candidates": candidates})
+        cost.cpu[kind] += seconds
+        progress and progress("propose")
+
+
+def _simulate_missing(sequences, store, physics, workers, cost, progress) -> None:
+    """Simulate each ``(scene, [candidate, ...])`` whose last attempt the store lacks."""
+    jobs = {}
+    for scene, sequence in sequences:
+        sha = scene_sha256(scene)
+        tokens = [candidate_token(Candidate.from_dict(c), physics) for c in sequence]
+        if store.get(sha, tokens) is None:
+            jobs.setdefault(path_key(sha, tokens), ("simulate", scene, list(sequence)))
+        else:
+            cost.stored += 1
+    for kind, rows, seconds in workers.map(list(jobs.values()), run=_job):
+        store.add(rows)
+        cost.simulated += 1
+        cost.cpu[kind] += seconds
+        progress and progress("simulate")
+
+
+def label_proposals(
+    scenes: Sequence[EnvScene],
+    store: PathStore,
+    views: ObservationStore,
+    config: LabelConfig = LabelConfig(),
+    workers: int = 1,
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
+    progress: Callable[[str], None] | None = None,
+) -> LabelCost:
+    """Label every candidate of ``scenes``' first decisions, then the grasps after each push and
+    pull where no first grasp worked (module docstring); the cost of what this run did."""
+    physics = physics_named(physics)
+    cost = LabelCost()
+    with Workers(workers, physics) as pool:
+        _propose_missing([(s, None, (), config.sampler) for s in scenes], views, config, pool, cost, progress)
+        first = {
+            scene_sha256(s): _proposed(views, scene_sha256(s), (), config.inputs(config.sampler))
+            for s in scenes
+        }
+        _simulate_missing(
+            [(s, [c]) for s in scenes for c in first[scene_sha256(s)]], store, physics, pool, cost, progress
+        )
+        movers = []  # (scene, the push or pull, its row) where no first grasp lifted the target
+        for s in scenes:
+            sha = scene_sha256(s)
+            rows = [
+                (c, store.get(sha, [candidate_token(Candidate.from_dict(c), physics)])) for c in first[sha]
+            ]
+            if any(c["action"] == "grasp" and row["success"] for c, row in rows):
+                continue
+            movers += [(s, c, row) for c, row in rows if c["action"] != "grasp" and not row["success"]]
+        points = [(s, row["qpos"], row["tokens"], config.follow) for s, _, row in movers]
+        _propose_missing(points, views, config, pool, cost, progress)
+        follow = []
+        for s, c, row in movers:
+            after = _proposed(views, row["scene_sha256"], row["tokens"], config.inputs(config.follow))
+            follow += [(s, [c, g]) for g in after]
+        _simulate_missing(follow, store, physics, pool, cost, progress)
+    return cost
+
+
+def candidate_labels(
+    scenes: Sequence[EnvScene],
+    store: PathStore,
+    views: ObservationStore,
+    config: LabelConfig = LabelConfig(),
+    physics: str | ControlPhysics = DEFAULT_PHYSICS,
+) -> list[dict]:
+    """One record per first-decision candidate of each labelled scene: the candidate, its own
+    ``success``, and for a push or pull that was followed up, ``after``: the follow-up grasps'
+    successes (None where it was not: a grasp alone worked there). Scenes not yet labelled are left
+    out."""
+    physics = physics_named(physics)
+    out = []
+    for s in scenes:
+        sha = scene_sha256(s)
+        proposed = _proposed(views, sha, (), config.inputs(config.sampler))
+        if proposed is None:
+            continue
+        for c in proposed:
+            token = candidate_token(Candidate.from_dict(c), physics)
+            row = store.get(sha, [token])
+            if row is None:
+                continue
+            after = _proposed(views, sha, [token], config.inputs(config.follow))
+            successes = None
+            if after is not None:
+                rows = [
+                    store.get(sha, [token, candidate_token(Candidate.from_dict(g), physics)]) for g in after
+                ]
+                successes = [r["success"] for r in rows if r is not None]
+            out.append({"scene_sha256": sha, "candidate": c, "success": row["success"], "after": successes})
+    return out

@@ -1,0 +1,87 @@
+"""The proposal model's labels (issue 63, point 2): every candidate of a first decision executed
+for real from the settled state and kept in the sequence store; the grasps after each push and pull
+where no first grasp worked; a rerun simulates nothing, two workers give the same store."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import pytest
+from scenes import place, proposal
+
+from scenegen.assets.catalog import load_catalog
+from scenegen.core.layout import FURNITURE_HOME
+from scenegen.env.scenes import proposal_scene, scene_sha256
+from scenegen.experiment.proposal_labels import LabelConfig, candidate_labels, label_proposals, point_rng
+from scenegen.experiment.sequences import ObservationStore, PathStore
+from scenegen.manipulation.proposals import SamplerConfig
+from scenegen.schema.scene import FurniturePlacement, Light, Lighting
+
+LIGHT = Lighting(lights=(Light(position=(0.0, 0.0, 2.5), direction=(0.0, 0.0, -1.0), intensity=0.8),))
+SHELF = FurniturePlacement(name="shelf", kind="shelf", position=(*FURNITURE_HOME["shelf"], 0.0))
+# one top grasp, one push, one pull at the first decision; two grasps after a push or pull
+CONFIG = LabelConfig(sampler=SamplerConfig(top=1, side=0, push=1, pull=1), follow=SamplerConfig(1, 1, 0, 0))
+
+
+@functools.cache
+def scenes():
+    catalog = load_catalog()
+    open_can = place(catalog, "can", "soda_can", 0.1, 0.0, pose=1)
+    # under the near half of the shelf's board: a hand from above meets the board
+    shelved = place(catalog, "can", "soda_can", 0.17, 0.27, pose=1, furniture=[SHELF])
+    return (
+        proposal_scene(proposal([open_can], lighting=LIGHT), "open_can"),
+        proposal_scene(proposal([shelved], [SHELF], lighting=LIGHT), "shelved_can"),
+    )
+
+
+def _label(folder: Path, workers: int = 1):
+    store, views = PathStore(folder / "paths.jsonl"), ObservationStore(folder / "views")
+    cost = label_proposals(scenes(), store, views, CONFIG, workers=workers)
+    return store, views, cost
+
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("labels")
+    return folder, *_label(folder)
+
+
+def test_each_first_candidate_has_a_row_and_pushes_are_followed_only_where_no_grasp_worked(labelled):
+    folder, store, views, cost = labelled
+    records = candidate_labels(scenes(), store, views, CONFIG)
+    by_scene = {}
+    for r in records:
+        by_scene.setdefault(r["scene_sha256"], []).append(r)
+    open_can, shelved = (by_scene[scene_sha256(s)] for s in scenes())
+    assert [r["candidate"]["action"] for r in open_can] == ["grasp", "push", "pull"]
+    top = open_can[0]
+    assert top["success"], "a top grasp from the can's visible top lifts a can in the open"
+    assert all(r["after"] is None for r in open_can)  # a grasp alone worked: no follow-ups
+    assert not shelved[0]["success"]  # the board stops the hand from above
+    movers = [r for r in shelved if r["candidate"]["action"] != "grasp"]
+    assert movers and all(r["after"] is not None and len(r["after"]) >= 1 for r in movers)
+    assert cost.simulated == len(store.entries)  # one new row per job: a follow-up's push is known
+    assert cost.per_candidate() > 0 and cost.stored == 0
+    rows = [store.get(scene_sha256(scenes()[1]), row_tokens) for row_tokens in _follow_tokens(store)]
+    assert rows and all(len(r["tokens"]) == 2 and r["prefix"][0] in ("push", "pull") for r in rows)
+
+
+def _follow_tokens(store: PathStore) -> list[list[str]]:
+    return [row["tokens"] for row in store.entries.values() if len(row["tokens"]) == 2]
+
+
+def test_a_rerun_simulates_nothing_and_two_workers_write_the_same_rows(labelled, tmp_path: Path):
+    folder, store, views, _ = labelled
+    again = label_proposals(scenes(), PathStore(folder / "paths.jsonl"), views, CONFIG)
+    assert again.simulated == 0 and again.stored == len(store.entries)
+    parallel, _, _ = _label(tmp_path, workers=2)
+    assert parallel.entries == store.entries and parallel.mismatches == 0
+
+
+def test_the_sampler_draws_the_same_candidates_at_a_point_in_any_process():
+    a = point_rng(0, "abc", ["push@1s1:x"]).random(3)
+    assert (a == point_rng(0, "abc", ["push@1s1:x"]).random(3)).all()
+    assert not (a == point_rng(0, "abc", []).random(3)).all()
+    assert not (a == point_rng(1, "abc", ["push@1s1:x"]).random(3)).all()
