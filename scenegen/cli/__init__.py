@@ -3,7 +3,8 @@
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
 (generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
 audit, manifest add), ``export.py`` (export), ``policy.py`` (label, success-table, policy) and
-``experiment.py`` (experiment transfer), ``assets.py`` (assets add, list, show); handlers call
+``experiment.py`` (experiment transfer), ``assets.py`` (assets add, list, show), ``retrieval.py``
+(retrieval train, eval), ``proposals.py`` (proposals label); handlers call
 library functions with typed arguments.
 """
 
@@ -13,7 +14,7 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import assets, data, experiment, export, generator, policy, retrieval, scenes
+from scenegen.cli import assets, data, experiment, export, generator, policy, proposals, retrieval, scenes
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -53,6 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     export.add_commands(sub)
     policy.add_commands(sub)
     retrieval.add_commands(sub)
+    proposals.add_commands(sub)
     experiment.add_commands(sub)
     return parser
 

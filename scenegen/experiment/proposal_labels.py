@@ -43,6 +43,7 @@ from scenegen.experiment.sequences import (
 )
 from scenegen.manipulation.primitives import PlanGrid
 from scenegen.manipulation.proposals import SAMPLER_VERSION, Candidate, SamplerConfig, sample_candidates
+from scenegen.manipulation.task import feasible
 from scenegen.policy.failures import attempt_features
 
 GRID = PlanGrid(metres=0.005, degrees=10.0)  # candidates closer than this are one attempt
@@ -273,4 +274,34 @@ def candidate_labels(
                 ]
                 successes = [r["success"] for r in rows if r is not None]
             out.append({"scene_sha256": sha, "candidate": c, "success": row["success"], "after": successes})
+    return out
+
+
+# ----------------------------------------------------------------------------------------- layouts
+LABEL_SETS = ("natural:600", "rare_rich:100", "rare_rich:300", "rare_rich:600", "curve", "validation")
+
+
+def label_layouts(specs: Sequence[str] = LABEL_SETS, limit: int | None = None) -> dict[str, list[EnvScene]]:
+    """The layouts each spec names: ``natural:N`` and ``rare_rich:N`` (the learning curves'
+    training sets, ``retrieval_curves.training_sets``), ``curve`` (their curve set: rare layouts on
+    no panel), ``validation`` (the version 2 validation panel's layouts); ``limit``: the first N of
+    each (a pilot). Only feasible layouts (a target on the floor is out of a table-top arm's reach).
+    The test panel is never read. ValueError names a spec it does not know."""
+    from scenegen.experiment.retrieval_curves import PANEL, curve_set, training_sets
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_id, panel_scenes
+
+    out = {}
+    for spec in specs:
+        name, _, size = spec.partition(":")
+        if name in ("natural", "rare_rich") and size.isdigit() and int(size) > 0:
+            scenes = training_sets(int(size))[name]
+        elif spec == "curve":
+            scenes = curve_set()
+        elif spec == PANEL:
+            panel = panel_scenes(load_panels_v2(), PANEL)  # the validation side's layouts only
+            scenes = list({panel_id(s): s for ss in panel.values() for s in ss}.values())
+        else:
+            raise ValueError(f"layouts {spec!r}: use natural:N, rare_rich:N, curve or validation")
+        scenes = [s for s in scenes if feasible(s)]
+        out[spec] = scenes[:limit] if limit is not None else scenes
     return out

@@ -138,7 +138,7 @@ def sample_candidates(
     seen height range; none looks at what the target is or how it lies."""
     points = _points(view)
     low = float(np.percentile(points[:, 2], 2)) + TABLE_CLEARANCE
-    top = float(np.percentile(points[:, 2], 98))
+    top = max(low, float(np.percentile(points[:, 2], 98)))  # a fork lies lower than the clearance
 
     def point() -> np.ndarray:
         return points[rng.integers(len(points))]

@@ -1,6 +1,6 @@
 """Kill anywhere: SIGKILL each long-running command at random moments, then rerun it.
 
-For every command (generate with 2 workers, reference, label, export, audit, and the transfer
+For every command (generate with 2 workers, reference, label, proposals label, export, audit, and the transfer
 experiment's tiny configuration) an uninterrupted run gives the expected output, and a second one
 (warm: per-machine caches filled) its wall time T;
 then, at each of POINTS moments drawn uniformly from (0, T) (seeded by the command's name), a fresh run
@@ -145,6 +145,26 @@ def export_whole(out: Path) -> list[str]:
     ]
 
 
+def proposals_whole(folder: Path) -> list[str]:
+    """The sequence store may end in a torn line (its reader cuts it off); every line before it and
+    every proposed decision point's JSON must be whole."""
+    problems = []
+    store = folder / "paths.jsonl"
+    if store.exists():
+        lines = store.read_bytes().split(b"\n")[:-1]  # the part after the last newline may be torn
+        for number, line in enumerate(lines, 1):
+            try:
+                json.loads(line)
+            except ValueError:
+                problems.append(f"paths.jsonl: line {number} torn")
+    for path in sorted((folder / "views").glob("*.json")):
+        try:
+            json.loads(path.read_text())
+        except ValueError:
+            problems.append(f"views/{path.name} torn")
+    return problems
+
+
 @dataclass
 class Case:
     """One command of the harness: its command line in a run folder, the output that a rerun must
@@ -213,6 +233,28 @@ def cases(inputs: dict[str, Path]) -> dict[str, Case]:
             ),
             lambda run: run / "labels.parquet",
             lambda run: parquet_whole(run / "labels.parquet"),
+        ),
+        "proposals": Case(
+            lambda run: scenegen(
+                "proposals",
+                "label",
+                "--layouts",
+                "validation",
+                "--limit",
+                1,
+                "--sampler",
+                2,
+                0,
+                0,
+                0,
+                "--out",
+                run / "proposals",
+                "--workers",
+                2,
+                "--quiet",
+            ),
+            lambda run: run / "proposals",
+            lambda run: proposals_whole(run / "proposals"),
         ),
         "export": Case(
             lambda run: scenegen("export", batch, "--format", "webdataset", "--out", run / "wds"),
@@ -304,7 +346,7 @@ def _unmeasured(data):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["generate", "reference", "label", "export", "audit"])
+@pytest.mark.parametrize("name", ["generate", "reference", "label", "proposals", "export", "audit"])
 def test_kill_anywhere_and_rerun(name: str, inputs: dict[str, Path], tmp_path: Path):
     inputs.setdefault("project_files", files_of(inputs["manifest"].parent))
     run_case(name, cases(inputs)[name], tmp_path, POINTS)
