@@ -71,7 +71,7 @@ def _init_worker() -> None:
 _PERCEPTIONS: dict[str, object] = {}
 
 
-def _perception(retrieval: Path | None):
+def loaded_perception(retrieval: Path | None):
     """This process's loaded retrieval head of ``retrieval`` (None: the oracle)."""
     if retrieval is None:
         return None
@@ -115,7 +115,7 @@ def simulate(
     from scenegen.perception.observation import observe as look
 
     physics = physics_named(physics)
-    perception = _perception(retrieval)
+    perception = loaded_perception(retrieval)
     env = episode_env(scene, physics)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     data = env.sim.data._data
@@ -199,7 +199,7 @@ def observe(
 
     physics = physics_named(physics)
     env = episode_env(scene, physics)
-    perception = _perception(retrieval)
+    perception = loaded_perception(retrieval)
     env.reset_to(variant.apply(scene))
     set_state(env, qpos)
     variant.sense(env, point)
@@ -234,7 +234,7 @@ def regrasp_plan(
 
     physics = physics_named(physics)
     env = episode_env(scene, physics)
-    perception = _perception(retrieval)
+    perception = loaded_perception(retrieval)
     env.reset_to(variant.apply(scene) if perception is not None else scene)
     set_state(env, qpos)
     variant.sense(env, point)

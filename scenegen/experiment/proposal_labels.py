@@ -66,6 +66,9 @@ class LabelConfig:
         return f"proposals:s{SAMPLER_VERSION}:{counts}:{self.grid.key()}:seed{self.seed}"
 
 
+DEFAULT_LABELS = LabelConfig()
+
+
 def point_rng(seed: int, sha: str, tokens: Sequence[str]) -> np.random.Generator:
     """The sampler's random stream at a decision point: the seed and the point (scene and the
     attempts before it), so any process and any order draws the same candidates there."""
@@ -206,7 +209,7 @@ def label_proposals(
     scenes: Sequence[EnvScene],
     store: PathStore,
     views: ObservationStore,
-    config: LabelConfig = LabelConfig(),
+    config: LabelConfig = DEFAULT_LABELS,
     workers: int = 1,
     physics: str | ControlPhysics = DEFAULT_PHYSICS,
     progress: Callable[[str], None] | None = None,
@@ -247,7 +250,7 @@ def candidate_labels(
     scenes: Sequence[EnvScene],
     store: PathStore,
     views: ObservationStore,
-    config: LabelConfig = LabelConfig(),
+    config: LabelConfig = DEFAULT_LABELS,
     physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> list[dict]:
     """One record per first-decision candidate of each labelled scene: the candidate, its own

@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+import numpy as np
 import pytest
 from scenes import place, proposal
 
@@ -85,3 +86,22 @@ def test_the_sampler_draws_the_same_candidates_at_a_point_in_any_process():
     assert (a == point_rng(0, "abc", ["push@1s1:x"]).random(3)).all()
     assert not (a == point_rng(0, "abc", []).random(3)).all()
     assert not (a == point_rng(1, "abc", ["push@1s1:x"]).random(3)).all()
+
+
+def test_examples_see_each_labelled_candidate_through_the_oracle_and_are_cached(labelled, tmp_path: Path):
+    from scenegen.experiment.proposal_data import candidate_label, examples
+    from scenegen.policy.proposal_model import CHANNELS, CROP, FEATURES
+
+    folder, store, views, _ = labelled
+    rendered = []
+    first = examples(scenes(), store, views, tmp_path / "crops", CONFIG, progress=rendered.append)
+    records = candidate_labels(scenes(), store, views, CONFIG)
+    assert len(first) == len(records) and len(rendered) == 2  # one rendering per layout
+    assert first.crops.shape == (len(records), CHANNELS, CROP, CROP) and first.features.shape[1] == FEATURES
+    assert first.labels.tolist() == [float(candidate_label(r)) for r in records]
+    assert first.labels[0] == 1.0  # the open can's top grasp
+    centre = first.crops[0, 4, CROP // 2 - 2 : CROP // 2 + 3, CROP // 2 - 2 : CROP // 2 + 3]
+    assert centre.mean() > 0.5  # the front camera's mask channel: the grasp point is on the can
+    again = []
+    second = examples(scenes(), store, views, tmp_path / "crops", CONFIG, progress=again.append)
+    assert not again and np.array_equal(second.crops, first.crops)
