@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scenegen.env.physics import DEFAULT_PHYSICS, ControlPhysics, physics_named
+from scenegen.env.physics import ControlPhysics, physics_named
 from scenegen.env.scenes import EnvScene, scene_sha256
 from scenegen.experiment.closed_loop import Workers, episode_env, loaded_perception
 from scenegen.experiment.proposal_labels import DEFAULT_LABELS, LabelConfig, candidate_labels
@@ -105,19 +105,18 @@ def examples(
     config: LabelConfig = DEFAULT_LABELS,
     retrieval: Path | None = None,
     workers: int = 1,
-    physics: str | ControlPhysics = DEFAULT_PHYSICS,
     progress: Callable[[str], None] | None = None,
 ) -> Examples:
     """Every labelled first-decision candidate of ``scenes`` as an example, in scene order; crops
     cached under ``folder``."""
     from scenegen.experiment.sequences import NOMINAL, sight
 
-    physics = physics_named(physics)
+    physics = physics_named(config.physics)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     seen = sight(retrieval, NOMINAL)
     records: dict[str, list[dict]] = {}
-    for r in candidate_labels(scenes, store, views, config, physics):
+    for r in candidate_labels(scenes, store, views, config):
         records.setdefault(r["scene_sha256"], []).append(r)
     by_sha = {scene_sha256(s): s for s in scenes}
     order = [sha for sha in by_sha if sha in records]

@@ -23,10 +23,13 @@ what the stores lack. No wall-clock data enters a row.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -45,6 +48,7 @@ from scenegen.manipulation.primitives import PlanGrid
 from scenegen.manipulation.proposals import SAMPLER_VERSION, Candidate, SamplerConfig, sample_candidates
 from scenegen.manipulation.task import feasible
 from scenegen.policy.failures import attempt_features
+from scenegen.store.batch import atomic_write
 
 GRID = PlanGrid(metres=0.005, degrees=10.0)  # candidates closer than this are one attempt
 FOLLOW = SamplerConfig(top=4, side=2, push=0, pull=0)
@@ -53,12 +57,13 @@ FOLLOW = SamplerConfig(top=4, side=2, push=0, pull=0)
 @dataclass(frozen=True)
 class LabelConfig:
     """What is proposed at a layout's first decision (``sampler``) and after a push or pull where
-    no grasp worked (``follow``), on ``grid``, drawn from ``seed``."""
+    no grasp worked (``follow``), on ``grid``, drawn from ``seed``, simulated under ``physics``."""
 
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     follow: SamplerConfig = FOLLOW
     grid: PlanGrid = GRID
     seed: int = 0
+    physics: str = DEFAULT_PHYSICS  # a name of env.physics.PHYSICS: what the attempts run under
 
     def inputs(self, sampler: SamplerConfig) -> str:
         """The observation store's input kind of a decision point proposed by ``sampler``."""
@@ -67,6 +72,57 @@ class LabelConfig:
 
 
 DEFAULT_LABELS = LabelConfig()
+SETTINGS = "labels.json"  # a label folder's LabelConfig
+
+
+def _settings(config: LabelConfig) -> dict:
+    return {
+        "sampler": dataclasses.asdict(config.sampler),
+        "follow": dataclasses.asdict(config.follow),
+        "grid": {"metres": config.grid.metres, "degrees": config.grid.degrees},
+        "seed": config.seed,
+        "physics": config.physics,
+        "sampler_version": SAMPLER_VERSION,
+    }
+
+
+def open_labels(
+    folder: Path, config: LabelConfig | None = None
+) -> tuple[LabelConfig, PathStore, ObservationStore]:
+    """A label folder's settings, sequence store and proposed decision points. ``config``: what a
+    labelling run asks; the folder's first run records it (``labels.json``), a later one must ask
+    the same (ValueError naming the file otherwise). Without ``config`` (training, scoring) the
+    recorded one is read; ValueError when the folder holds none."""
+    folder = Path(folder)
+    path = folder / SETTINGS
+    if path.is_file():
+        recorded = json.loads(path.read_text())
+        known = LabelConfig(
+            sampler=SamplerConfig(**recorded["sampler"]),
+            follow=SamplerConfig(**recorded["follow"]),
+            grid=PlanGrid(**recorded["grid"]),
+            seed=int(recorded["seed"]),
+            physics=str(recorded["physics"]),
+        )
+        if recorded.get("sampler_version") != SAMPLER_VERSION:
+            raise ValueError(f"{path}: labelled by sampler version {recorded.get('sampler_version')}, "
+                             f"this is {SAMPLER_VERSION}: label into a new folder")  # fmt: skip
+        if config is not None and config != known:
+
+            def said(c: LabelConfig) -> str:
+                counts = " ".join(str(v) for v in dataclasses.astuple(c.sampler))
+                return f"sampler {counts} seed {c.seed} physics {c.physics}"
+
+            raise ValueError(
+                f"{path}: labelled with {said(known)}, not {said(config)}: use those or a new folder"
+            )
+        config = known
+    elif config is None:
+        raise ValueError(f"{folder}: no {SETTINGS}; run `scenegen proposals label --out {folder}` first")
+    else:
+        folder.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, json.dumps(_settings(config), indent=1, sort_keys=True) + "\n")
+    return config, PathStore(folder / "paths.jsonl"), ObservationStore(folder / "views")
 
 
 def point_rng(seed: int, sha: str, tokens: Sequence[str]) -> np.random.Generator:
@@ -211,12 +267,12 @@ def label_proposals(
     views: ObservationStore,
     config: LabelConfig = DEFAULT_LABELS,
     workers: int = 1,
-    physics: str | ControlPhysics = DEFAULT_PHYSICS,
     progress: Callable[[str], None] | None = None,
 ) -> LabelCost:
     """Label every candidate of ``scenes``' first decisions, then the grasps after each push and
-    pull where no first grasp worked (module docstring); the cost of what this run did."""
-    physics = physics_named(physics)
+    pull where no first grasp worked (module docstring), under ``config.physics``; the cost of what
+    this run did."""
+    physics = physics_named(config.physics)
     cost = LabelCost()
     with Workers(workers, physics) as pool:
         _propose_missing([(s, None, (), config.sampler) for s in scenes], views, config, pool, cost, progress)
@@ -251,13 +307,12 @@ def candidate_labels(
     store: PathStore,
     views: ObservationStore,
     config: LabelConfig = DEFAULT_LABELS,
-    physics: str | ControlPhysics = DEFAULT_PHYSICS,
 ) -> list[dict]:
     """One record per first-decision candidate of each labelled scene: the candidate, its own
     ``success``, and for a push or pull that was followed up, ``after``: the follow-up grasps'
     successes (None where it was not: a grasp alone worked there). Scenes not yet labelled are left
     out."""
-    physics = physics_named(physics)
+    physics = physics_named(config.physics)
     out = []
     for s in scenes:
         sha = scene_sha256(s)
