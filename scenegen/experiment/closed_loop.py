@@ -289,15 +289,13 @@ class Workers:
 
     def map(self, jobs: list[tuple], run=None) -> Iterator[tuple]:
         """``(kind, result, CPU seconds)`` of each ``(kind, scene, arguments)`` job, in order, under
-        this pool's physics; ``run``: the module-level function that does one (default: the closed
-        loop's observe, regrasp and simulate jobs)."""
+        this pool's physics, done by ``run`` (default: the closed loop's jobs)."""
         if not jobs:
             return iter(())
-        run = run or _job
         jobs = [(*job, self.physics) for job in jobs]
         if self.pool is None:
-            return map(run, jobs)
-        return self.pool.map(run, jobs, chunksize=1)
+            return map(run or _job, jobs)
+        return self.pool.map(run or _job, jobs, chunksize=1)
 
 
 # ---------------------------------------------------------------------------------------- evaluation
