@@ -10,7 +10,6 @@ from pathlib import Path
 from scenegen.cli.common import add_device_argument, add_sensor_argument, device_error, fail, first_line
 
 DEFAULT_CACHE = Path("runs/cache/frames")
-SEPARATOR_STEPS = 3000  # the instances design's boundary network (separation.py)
 
 
 def add_commands(sub) -> None:
@@ -63,8 +62,8 @@ def _add_train(cmds) -> None:
     tr.add_argument(
         "--separator-steps",
         type=int,
-        default=SEPARATOR_STEPS,
-        help=f"instances: training steps of the boundary network (default {SEPARATOR_STEPS})",
+        help="instances: training steps of the boundary network (default 3000; 12000 under the learned "
+        "depth rule, whose separator also learns the object map: docs/sensor.md)",
     )
     tr.add_argument(
         "--steps",
@@ -176,7 +175,8 @@ def retrieval_train(args: argparse.Namespace) -> int:
 
     if args.steps is None:
         args.steps = 2000 if args.design == "segmenter" else 6000
-    if min(args.steps, args.batch_size, args.limit, args.workers, args.separator_steps) < 1 or args.alpha < 0:
+    counts = (args.steps, args.batch_size, args.limit, args.workers, args.separator_steps or 1)
+    if min(counts) < 1 or args.alpha < 0:
         return fail(
             "--steps, --separator-steps, --batch-size, --limit and --workers must be at least 1, --alpha at "
             "least 0"

@@ -260,8 +260,15 @@ def test_a_head_is_its_whole_folder_and_the_rules_version_keys_its_observations(
     assert sight(old, NOMINAL, 1) == f"retrieval:{sha256_file(old / 'model.safetensors')[:16]}@nominal:1.0"
 
 
-def test_the_cli_default_of_separator_steps_is_the_designs():
-    from scenegen.cli.retrieval import SEPARATOR_STEPS
-    from scenegen.perception.retrieval import separation
+def test_the_separators_default_steps_follow_the_depth_rule():
+    """3,000 on exact depth (the committed heads' bytes); 12,000 under the learned rule, whose
+    separator also learns the object map (the pilot that chose it: docs/sensor.md)."""
+    from scenegen.cli import main
+    from scenegen.perception.retrieval.candidates import default_separator_steps
+    from scenegen.perception.retrieval.regions import DEPTH_RULES, SENSOR_RULE
+    from scenegen.perception.retrieval.separation import LEARNED_RULE_STEPS, SEPARATOR_STEPS
 
-    assert SEPARATOR_STEPS == separation.SEPARATOR_STEPS
+    assert default_separator_steps(DEPTH_RULES["exact"]) == SEPARATOR_STEPS == 3000
+    assert default_separator_steps(DEPTH_RULES["mended_5mm"]) == SEPARATOR_STEPS
+    assert default_separator_steps(DEPTH_RULES[SENSOR_RULE]) == LEARNED_RULE_STEPS == 12000
+    assert main(["retrieval", "train", "--data", "x", "--out", "y", "--separator-steps", "0"]) == 2

@@ -34,7 +34,7 @@ from scenegen.perception.retrieval.regions import (  # noqa: F401 - the design's
     foreground,
     robot_pixels,
 )
-from scenegen.perception.retrieval.separation import CHANNELS, SEPARATOR_STEPS
+from scenegen.perception.retrieval.separation import CHANNELS, LEARNED_RULE_STEPS, SEPARATOR_STEPS
 
 CROP = 32  # px: the classifier's input size
 FILL = 0.8  # of the crop's width the region's long axis fills
@@ -219,6 +219,12 @@ def train_classifier(
     return summary
 
 
+def default_separator_steps(rule: DepthRule) -> int:
+    """The separator's training steps under ``rule``: a learned rule's separator also learns the
+    object map and needs more (separation.LEARNED_RULE_STEPS)."""
+    return LEARNED_RULE_STEPS if rule.learned else SEPARATOR_STEPS
+
+
 def train_instances(
     scenes,
     frames,
@@ -229,7 +235,7 @@ def train_instances(
     alpha: float = 1.0,
     description: dict | None = None,
     progress: bool = False,
-    separator_steps: int = SEPARATOR_STEPS,
+    separator_steps: int | None = None,
     width: int = 8,
     channels: int = CHANNELS,
     device: str = "cpu",
@@ -243,7 +249,8 @@ def train_instances(
     ``recipe``), as the classifier draws them. ``channels``: the separator's input planes
     (separation.py: 9; 7 as separators were saved before the contact channels). ``rule``: the
     region step's ``regions.DepthRule`` (default exact depth's; another is saved in config.json as
-    ``depth_rule`` and applied at prediction time). Returns the classifier's summary with the
+    ``depth_rule`` and applied at prediction time). ``separator_steps``: default ``SEPARATOR_STEPS``,
+    ``LEARNED_RULE_STEPS`` under a learned rule. Returns the classifier's summary with the
     separator's under ``separator``."""
     from safetensors.torch import save_file
 
@@ -253,6 +260,8 @@ def train_instances(
 
     started = time.process_time()
     rule = rule or DepthRule()
+    if separator_steps is None:
+        separator_steps = default_separator_steps(rule)
     if rule.mends:
         frames = [rule.mend_frames(f) for f in frames]
     inputs, labels, contacts, scene_of, objects = separator_frames(scenes, frames, channels, rule)
