@@ -156,7 +156,7 @@ def _add_panels(kinds) -> None:
 
 def _add_perception_gap(kinds, panels_file: Path) -> None:
     from scenegen.paths import ASSETS_DIR
-    from scenegen.perception.retrieval import DEFAULT_HEAD
+    from scenegen.perception.retrieval import DEFAULT_HEAD, SENSOR_HEAD
 
     gap = kinds.add_parser(
         "perception-gap",
@@ -171,8 +171,8 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
     gap.add_argument(
         "--retrieval",
         type=Path,
-        default=DEFAULT_HEAD,
-        help=f"head (default {DEFAULT_HEAD.relative_to(ASSETS_DIR.parent)})",
+        help=f"head (default {DEFAULT_HEAD.relative_to(ASSETS_DIR.parent)}; through --sensor active_stereo "
+        f"{SENSOR_HEAD.relative_to(ASSETS_DIR.parent)}, trained through it)",
     )
     gap.add_argument("--panels", type=Path, default=panels_file, help=f"panels file (default {panels_file})")
     gap.add_argument(
@@ -206,12 +206,14 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
 def perception_gap(args: argparse.Namespace) -> int:
     from scenegen.core.files import CheckpointError
     from scenegen.experiment.perception_gap import markdown, run_gap
+    from scenegen.perception.retrieval import default_head
     from scenegen.perception.retrieval.perceive import RetrievalPerception
     from scenegen.policy.network import PrimitivePolicy
     from scenegen.policy.panels_v2 import load_panels_v2, panel_scenes
 
     if args.workers < 1 or (args.limit is not None and args.limit < 1):
         return fail("--workers and --limit must be at least 1")
+    args.retrieval = args.retrieval or default_head(args.sensor)
     try:
         PrimitivePolicy.load(args.checkpoint)
         RetrievalPerception.load(args.retrieval)

@@ -23,3 +23,14 @@ def test_every_committed_head_is_pinned_by_its_folder_and_loads():
         RetrievalPerception.load(ASSETS_DIR / "retrieval" / name)
     assert DEFAULT_HEAD.name == pins["default"] == "instances"
     assert pins["heads"]["instances"]["kind"] == "instances"
+
+
+def test_through_the_active_stereo_sensor_the_default_head_is_the_one_trained_through_it():
+    from scenegen.perception.retrieval import default_head
+    from scenegen.perception.retrieval.perceive import RetrievalPerception
+
+    assert default_head() == default_head("structured_light") == DEFAULT_HEAD
+    head = RetrievalPerception.load(default_head("active_stereo"))
+    config = json.loads((default_head("active_stereo") / "config.json").read_text())
+    assert config["depth_rule"]["learned"] is True and config["separator"]["training"]["steps"] == 12000
+    assert head is not None
