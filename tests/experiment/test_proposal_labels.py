@@ -105,3 +105,38 @@ def test_examples_see_each_labelled_candidate_through_the_oracle_and_are_cached(
     again = []
     second = examples(scenes(), store, views, tmp_path / "crops", CONFIG, progress=again.append)
     assert not again and np.array_equal(second.crops, first.crops)
+
+
+def test_the_proposal_model_in_closed_loop_serves_labelled_first_attempts_and_reruns_free(labelled, tmp_path):
+    from scenegen.experiment.closed_loop import Workers
+    from scenegen.experiment.proposal_data import examples
+    from scenegen.experiment.proposal_loop import evaluate_proposals
+    from scenegen.experiment.sequences import Cost
+    from scenegen.policy.proposal_model import train_model
+
+    folder, store, views, _ = labelled
+    data = examples(scenes(), store, views, tmp_path / "crops", CONFIG)
+    train_model(data.crops, data.features, data.labels, steps=30, batch=8, width=4).save(tmp_path / "model")
+    labelled_tokens = {tuple(row["tokens"]) for row in store.entries.values()}
+    observations = ObservationStore(tmp_path / "decisions")
+    cost = Cost()
+    with Workers(1) as pool:
+        records = evaluate_proposals(
+            tmp_path / "model", scenes(), store, observations, pool, config=CONFIG, cost=cost
+        )
+        assert [r["scene_sha256"] for r in records] == [scene_sha256(s) for s in scenes()]
+        for r in records:
+            assert (
+                1 <= len(r["plans"]) <= 3 and (r["plans"][0],) in labelled_tokens
+            )  # the labels' first candidates
+            assert r["success"] == store.get(r["scene_sha256"], r["plans"])["success"]
+            assert r["first_attempt"] == (r["success"] and len(r["plans"]) == 1)
+        assert cost.shared >= len(scenes()) and cost.attempts == sum(len(r["plans"]) for r in records)
+        again = Cost()
+        assert (
+            evaluate_proposals(
+                tmp_path / "model", scenes(), store, observations, pool, config=CONFIG, cost=again
+            )
+            == records
+        )
+        assert again.simulated == 0 and again.cpu["observe"] == 0.0  # every decision and attempt is stored

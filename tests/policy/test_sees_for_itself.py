@@ -282,3 +282,79 @@ def test_a_re_observation_inside_a_primitive_reads_no_ground_truth(demo_batch: P
     assert guard.decisions == 2  # the decision and the re-observation inside the primitive
     assert normal[0]["regrasp"] is not None and normal[0]["regrasp"]["plan"] != "unseen"
     assert guarded == normal
+
+
+def _tiny_proposal_model(folder: Path) -> Path:
+    from scenegen.policy.proposal_model import CHANNELS, CROP, FEATURES, train_model
+
+    rng = np.random.default_rng(0)
+    crops = rng.random((16, CHANNELS, CROP, CROP), dtype=np.float32)
+    features = rng.random((16, FEATURES), dtype=np.float32)
+    train_model(crops, features, np.arange(16) % 2, steps=2, batch=4, width=4).save(folder)
+    return folder
+
+
+def _store_guard(monkeypatch) -> None:
+    """Any read of a sequence or observation store raises: a decision must not look an outcome up."""
+    from scenegen.experiment.sequences import ObservationStore, PathStore
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a store was opened or read at decision time")
+
+    for cls, names in (
+        (PathStore, ("__init__", "get", "candidates")),
+        (ObservationStore, ("__init__", "get", "meta")),
+    ):
+        for name in names:
+            monkeypatch.setattr(cls, name, refuse)
+
+
+def test_the_proposal_models_decision_reads_no_ground_truth_and_no_store(
+    demo_batch: Path, tmp_path, monkeypatch
+):
+    """Issue 63, point 4: the sampler and the model decide from frames, cameras, the robot's state
+    and the requested category, under the object guard and with every store closed to them; a copy
+    of the decision that looks up a stored outcome is caught, and so is one that reads where the
+    objects are."""
+    from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
+    from scenegen.env.robosuite_env import close_worker_envs
+    from scenegen.experiment.proposal_labels import LabelConfig
+    from scenegen.experiment.proposal_loop import decide
+    from scenegen.experiment.sequences import NOMINAL, PathStore
+    from scenegen.manipulation.proposals import SamplerConfig
+
+    scene = batch_scenes(demo_batch)[1]
+    model = _tiny_proposal_model(tmp_path / "model")
+    config, physics = LabelConfig(sampler=SamplerConfig(4, 2, 1, 1)), physics_named(DEFAULT_PHYSICS)
+    args = (None, [], [], model, RETRIEVAL, NOMINAL, config, physics)
+    try:
+        normal = decide(scene, *args)
+        guard = DecisionGuard(scene)
+        install(guard, monkeypatch)
+        _store_guard(monkeypatch)
+        try:
+            guarded = decide(GuardedScene(scene, guard), *args)
+            guard.end()  # as the attempt's first step would
+
+            def cheating(scene, *rest):  # the same decision, then a look at what happened before
+                decision = decide(scene, *rest)
+                PathStore(tmp_path / "paths.jsonl").get("sha", ["token"])
+                return decision
+
+            with pytest.raises(AssertionError, match="store was opened or read"):
+                cheating(GuardedScene(scene, guard), *args)
+            guard.end()
+
+            def peeking(scene, *rest):  # the same decision, then a look at where the objects are
+                decision = decide(scene, *rest)
+                return decision, [o.position for o in scene.objects]
+
+            with pytest.raises(AssertionError, match="an object's position was read at decision time"):
+                peeking(GuardedScene(scene, guard), *args)
+        finally:
+            guard.end()
+            monkeypatch.undo()
+    finally:
+        close_worker_envs()
+    assert guard.decisions == 3 and normal["candidate"] is not None and normal["proposed"] >= 4
+    assert guarded == normal
