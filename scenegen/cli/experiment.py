@@ -169,6 +169,13 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
     )
     gap.add_argument("--checkpoint", type=Path, default=ASSETS_DIR / "policy" / "baseline", help="policy")
     gap.add_argument(
+        "--proposals",
+        type=Path,
+        metavar="MODEL",
+        help="act by a proposal model instead (scenegen proposals train): candidates sampled from what "
+        "the robot sees, the best by the model executed, proposed anew after each attempt",
+    )
+    gap.add_argument(
         "--retrieval",
         type=Path,
         help=f"head (default {DEFAULT_HEAD.relative_to(ASSETS_DIR.parent)}; through --sensor active_stereo "
@@ -215,7 +222,12 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail("--workers and --limit must be at least 1")
     args.retrieval = args.retrieval or default_head(args.sensor)
     try:
-        PrimitivePolicy.load(args.checkpoint)
+        if args.proposals is not None:
+            from scenegen.policy.proposal_model import ProposalModel
+
+            ProposalModel.load(args.proposals)
+        else:
+            PrimitivePolicy.load(args.checkpoint)
         RetrievalPerception.load(args.retrieval)
         panel = panel_scenes(load_panels_v2(args.panels), args.side)
     except (CheckpointError, OSError, ValueError, KeyError) as exc:
@@ -228,7 +240,7 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail(f"--physics {first_line(exc)}")
     summary = run_gap(
         args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet, args.perception_rules,
-        args.sensor, physics,
+        args.sensor, physics, args.proposals,
     )  # fmt: skip
     print(markdown(summary), end="")
     print(f"-> {args.out}")

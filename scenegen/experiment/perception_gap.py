@@ -65,11 +65,14 @@ def run_gap(
     rules: int | None = None,
     sensor: str = "exact",
     physics: str = DEFAULT_PHYSICS,
+    proposals: Path | None = None,
 ) -> dict:
     """Evaluate the policy at ``checkpoint`` on ``panel`` (panel name -> EnvScenes, each with its
     ``panel_id``) through ``retrieval`` and through the oracle, the head's decisions scored by the
     perception rules' version ``rules`` (default: the current one), every depth frame through
-    ``sensor`` (exact: the renderer's), simulated under ``physics``; write and return the summary."""
+    ``sensor`` (exact: the renderer's), simulated under ``physics``; write and return the summary.
+    ``proposals``: a proposal model's folder acts instead of the policy (issue 63: sampled candidates
+    ranked by the model, ``proposal_loop.evaluate_proposals``)."""
     from tqdm import tqdm
 
     from scenegen.core.files import folder_sha256
@@ -79,7 +82,7 @@ def run_gap(
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    policy = PrimitivePolicy.load(checkpoint)
+    policy = PrimitivePolicy.load(checkpoint) if proposals is None else None
     scenes = list({panel_id(s): s for ss in panel.values() for s in ss}.values())
     ids = {name: [panel_id(s) for s in ss] for name, ss in panel.items()}
     store = PathStore(out / "paths.jsonl")
@@ -91,6 +94,11 @@ def run_gap(
         "perception_rules": PERCEPTION_RULES if rules is None else rules,
         "layouts": len(scenes),
         **({"sensor": sensor} if sensor != "exact" else {}),
+        **(
+            {"proposals": str(proposals), "proposals_sha256": folder_sha256(Path(proposals))}
+            if proposals
+            else {}
+        ),
         "physics": physics_named(physics).key(),
         "settings": {},
     }
@@ -100,18 +108,26 @@ def run_gap(
             cost = Cost()
             began = time.monotonic()
             with tqdm(desc=setting, unit=" jobs", disable=not progress) as bar:
-                records = evaluate_policies(
-                    {"policy": policy},
-                    scenes,
-                    store,
-                    observations,
-                    variant,
-                    pool,
-                    lambda _, bar=bar: bar.update(),
-                    head,
-                    cost,
-                    summary["perception_rules"],
-                )
+                if proposals is not None:
+                    from scenegen.experiment.proposal_loop import evaluate_proposals
+
+                    tick = lambda _, bar=bar: bar.update()  # noqa: E731
+                    records = evaluate_proposals(
+                        proposals, scenes, store, observations, pool, head, variant, cost=cost, progress=tick
+                    )
+                else:
+                    records = evaluate_policies(
+                        {"policy": policy},
+                        scenes,
+                        store,
+                        observations,
+                        variant,
+                        pool,
+                        lambda _, bar=bar: bar.update(),
+                        head,
+                        cost,
+                        summary["perception_rules"],
+                    )
             for scene, record in zip(scenes, records, strict=True):
                 record["panel_id"] = panel_id(scene)
             lines = "".join(json.dumps(r, sort_keys=True) + "\n" for r in records)

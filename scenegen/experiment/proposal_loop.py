@@ -191,4 +191,9 @@ def _record(run: _Run) -> dict:
         "first_attempt": bool(run.success and len(run.sequence) == 1),
         "time": run.entry["time"] if run.entry else 0.0,
         "scores": [d["score"] for d in run.decisions],
+        # as closed_loop's records, for perception_gap's summary: no failure labeller here yet
+        "perception": [],
+        "attempt_failures": [],
+        "failure": "" if run.success else ("target_not_seen" if not run.sequence else "unlabelled"),
+        "out_of_time": bool(not run.success and run.entry is not None and run.entry["time"] >= TIME_LIMIT),
     }

@@ -48,3 +48,11 @@ def test_training_without_labels_says_what_to_run(tmp_path: Path, capsys):
     argv = ["proposals", "train", "--labels", str(tmp_path), "--out", str(tmp_path / "m"), "--quiet"]
     assert main(argv) == 2
     assert "run `scenegen proposals label" in capsys.readouterr().err
+
+
+def test_perception_gap_with_a_folder_that_is_not_a_proposal_model_says_so(tmp_path: Path, capsys):
+    argv = ["experiment", "perception-gap", "--proposals", str(tmp_path), "--out", str(tmp_path / "gap")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "not a proposal model" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "gap").exists()
