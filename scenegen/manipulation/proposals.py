@@ -13,7 +13,8 @@ that differ below the grid execute, and share, one stored attempt):
 - ``grasp``: the grip site goes to ``position`` with the hand pointing down (``approach: top``,
   the fingers closing along ``heading``) or horizontally (``approach: side``, coming along
   ``heading``, the fingers closing across it), closes, lifts ``LIFT`` and holds; the gripper is
-  binary (no width).
+  binary (no width). Fingers that closed on nothing (the robot feels it) open and rise instead of
+  lifting: the attempt is over, a third of its time saved.
 - ``push``: the closed hand comes down ``STANDOFF`` behind ``contact`` (against ``direction``) and
   pushes ``distance`` along ``direction``, then rises, open.
 - ``pull``: the open hand comes in horizontally along ``approach`` to ``position``, closes, drags
@@ -34,12 +35,13 @@ from scenegen.manipulation.motion import CLOSE, OPEN, down_grasp, hold, servo, s
 from scenegen.manipulation.primitives import (
     APPROACH_HEIGHT,
     CLOSE_STEPS,
+    HELD_GAP,
     PlanGrid,
     close_at,
     lift_and_hold,
 )
 from scenegen.perception.observation import TargetView
-from scenegen.perception.robot_state import grip_site
+from scenegen.perception.robot_state import finger_gap, grip_site
 
 SAMPLER_VERSION = 1  # bump when what the sampler draws changes (labels are keyed by it)
 APPROACHES = ("top", "side")
@@ -188,6 +190,8 @@ def _grasp_rotation(params: dict) -> np.ndarray:
 
 @action("grasp", version=1)
 def execute_grasp(env, params: dict, step=None) -> None:
+    """Approach, close; if the fingers closed on nothing (proprioception: ``HELD_GAP``), open and
+    rise, the attempt over; else lift and hold."""
     rotation = _grasp_rotation(params)
     position = np.asarray(params["position"], float)
     if params["approach"] == "top":
@@ -196,6 +200,11 @@ def execute_grasp(env, params: dict, step=None) -> None:
     else:
         _side_in(env, position, np.asarray(params["heading"], float), rotation, step)
         hold(env, CLOSE, CLOSE_STEPS, step=step)
+    if finger_gap(env) <= HELD_GAP:  # nothing between the fingers: lifting would lift nothing
+        hold(env, OPEN, CLOSE_STEPS, step=step)
+        here, _ = grip_site(env)
+        servo(env, here + np.array([0.0, 0.0, RISE]), rotation, OPEN, max_steps=40, step=step)
+        return
     lift_and_hold(env, rotation, step)
 
 

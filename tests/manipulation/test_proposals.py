@@ -150,7 +150,10 @@ def test_a_top_grasp_candidate_lifts_an_upright_can_and_one_beside_it_does_not(e
     assert outcome.success and outcome.lift >= LIFT_HEIGHT, outcome
     env.reset_to(can_scene())
     beside = Candidate("grasp", {**on.params, "position": [top[0], top[1] + 0.09, top[2]]})
-    assert not run_candidate(env, beside).success
+    missed = run_candidate(env, beside)
+    assert not missed.success and missed.lift < 0.01
+    # the fingers felt nothing: open, risen, over before a lift and hold would have ended it
+    assert finger_gap(env) > 0.03 and missed.time < outcome.time - 1.0, (missed.time, outcome.time)
 
 
 def test_a_side_grasp_candidate_lifts_an_upright_can_from_the_robots_side(env):
