@@ -12,8 +12,6 @@ from scenegen.cli.common import add_device_argument, device_error, fail, first_l
 
 
 def add_commands(sub) -> None:
-    from scenegen.experiment.proposal_labels import LABEL_SETS
-
     top = sub.add_parser(
         "proposals",
         help="the learned recovery proposal model: label candidates by simulation",
@@ -35,10 +33,10 @@ def add_commands(sub) -> None:
     label.add_argument(
         "--layouts",
         nargs="+",
-        default=list(LABEL_SETS),
         metavar="SET",
         help="natural:N, rare_rich:N (the learning curves' training sets), curve (their curve set), "
-        f"validation (the version 2 validation panel); default: {' '.join(LABEL_SETS)}",
+        "validation (the version 2 validation panel); default: every set issue 63 labels "
+        "(natural:600 rare_rich:100 rare_rich:300 rare_rich:600 curve validation)",
     )
     label.add_argument("--limit", type=int, help="only the first N layouts of each set (a pilot)")
     label.add_argument(
@@ -123,7 +121,13 @@ def proposals_label(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from scenegen.env.scenes import scene_sha256
-    from scenegen.experiment.proposal_labels import LabelConfig, label_layouts, label_proposals, open_labels
+    from scenegen.experiment.proposal_labels import (
+        LABEL_SETS,
+        LabelConfig,
+        label_layouts,
+        label_proposals,
+        open_labels,
+    )
     from scenegen.manipulation.proposals import SamplerConfig
 
     if args.workers < 1 or (args.limit is not None and args.limit < 1):
@@ -136,7 +140,7 @@ def proposals_label(args: argparse.Namespace) -> int:
     except ValueError as exc:
         return fail(f"--physics {first_line(exc)}")
     try:
-        sets = label_layouts(args.layouts, args.limit)
+        sets = label_layouts(args.layouts or LABEL_SETS, args.limit)
     except (OSError, ValueError, KeyError) as exc:
         return fail(f"--layouts: {first_line(exc)}")
     scenes = list({scene_sha256(s): s for ss in sets.values() for s in ss}.values())

@@ -1,26 +1,22 @@
 """Closed-loop evaluation of many policies on the same panel scenes, sharing the simulation.
 
-An episode is what :func:`scenegen.policy.evaluate.run_episode` does: from the scene's settled state the
-policy observes, chooses a primitive, the primitive runs; after a failure it observes again and chooses
-one it has not tried, up to ``ATTEMPTS`` attempts within the task's time limit. The outcome of a
-sequence from a scene is a function of the scene and the plans executed, kept in the sequence store
-(``sequences.py``: keyed by the plans, so twenty policies, or policies seeing through different
-heads, cost little more than the distinct plans they execute); an observation at a decision is
-rendered from the stored state (the nominal view, or a :class:`~scenegen.experiment.sequences.Variant`
-of it).
-
+An episode is what :func:`scenegen.policy.evaluate.run_episode` does: observe, choose a primitive,
+run it; after a failure observe again and choose one not tried, up to ``ATTEMPTS`` attempts within
+the time limit. A sequence's outcome is a function of the scene and the plans executed, kept in the
+sequence store (``sequences.py``: keyed by the plans, so policies seeing through different heads cost
+little more than the distinct plans they execute); an observation at a decision is rendered from the
+stored state (nominal, or a :class:`~scenegen.experiment.sequences.Variant` of it).
 :func:`evaluate_policies` runs in rounds, one attempt per round for every (policy, scene) still going:
 decide (observations rendered in a worker pool, cached on disk), serve the attempt from the store where
 its plans were executed before (a re-observation's plan compared at its stored state), simulate the
-rest (the same pool), counting both and the CPU of every job in a :class:`Cost`. The expert label of a
-primitive on a scene is its one-primitive sequence's success with the oracle's plans, which the failure
-labeller's ``grasp_choice`` rule reads.
-"""
+rest (the same pool), counting both and the CPU of every job in a :class:`Cost`; a primitive's expert
+label is its one-primitive sequence's success with the oracle's plans (``grasp_choice``)."""
 
 from __future__ import annotations
 
 import dataclasses
 import multiprocessing
+import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -59,11 +55,14 @@ def episode_env(scene: EnvScene, physics: ControlPhysics):
     return worker_env(scene, physics=physics, **options)
 
 
-def _init_worker() -> None:
+def _init_worker(coordinator: int | None = None) -> None:
     import torch
 
     from scenegen.env.robosuite_env import init_worker
+    from scenegen.runner.executors import die_with_parent
 
+    if coordinator is not None:  # a pool worker dies with its coordinator
+        die_with_parent(coordinator)
     torch.set_num_threads(1)
     init_worker()
 
@@ -280,7 +279,9 @@ class Workers:
             _init_worker()
         else:
             context = multiprocessing.get_context("spawn")
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=context, initializer=_init_worker)
+            self.pool = ProcessPoolExecutor(
+                self.workers, mp_context=context, initializer=_init_worker, initargs=(os.getpid(),)
+            )
         return self
 
     def __exit__(self, *exc) -> None:
@@ -298,7 +299,6 @@ class Workers:
         return self.pool.map(run or _job, jobs, chunksize=1)
 
 
-# ---------------------------------------------------------------------------------------- evaluation
 @dataclass
 class _Run:
     policy: str
