@@ -78,7 +78,8 @@ def decide(
     if view is None:
         return {"candidate": None, "score": None, "proposed": 0}
     candidates = sample_candidates(view, point_rng(config.seed, sha, tokens), config.sampler, config.grid)
-    fresh = [c for c in candidates if candidate_token(c, physics) not in set(tried)]
+    tried = set(tried)
+    fresh = [c for c in candidates if candidate_token(c, physics) not in tried]
     if not fresh:
         return {"candidate": None, "score": None, "proposed": len(candidates)}
     scores = loaded_model(model).rank(fresh, view, frames, cameras)

@@ -50,13 +50,7 @@ def run_primitive(
     chosen = PRIMITIVES[name]
     params = make_plan(name, view, grid)
 
-    def step(action):
-        if recorder is not None:
-            recorder.step(action)
-        else:
-            env.step(action)
-        monitor.update()
-
+    step = _stepper(env, recorder, monitor)
     look = look or (lambda: observe(env, perception, image))
     chosen.execute(env, params, step=step, look=look, grid=grid)
     return monitor.outcome, params
@@ -65,12 +59,19 @@ def run_primitive(
 def run_candidate(
     env, candidate: Candidate, recorder=None, episode: tuple[float, float] | None = None
 ) -> RetrieveOutcome:
-    """Execute a proposal ``candidate`` from the environment's current
-    state; its outcome as the simulator measured it. ``episode`` as for :func:`run_primitive`. A
-    push or pull that does not lift the target ends without success: the next decision is a new
-    observation and a new proposal."""
+    """Execute a proposal ``candidate`` from the environment's current state; its outcome as the
+    simulator measured it. ``episode`` as for :func:`run_primitive`. A push or pull that does not
+    lift the target ends without success: the next decision is a new observation and proposal."""
     start, settled_z = episode if episode is not None else (None, None)
     monitor = RetrieveMonitor(env, start=start, settled_z=settled_z)
+
+    execute(env, candidate, step=_stepper(env, recorder, monitor))
+    return monitor.outcome
+
+
+def _stepper(env, recorder, monitor):
+    """The function an attempt takes an action by: the recorder's step (or the environment's),
+    then the task monitor's update."""
 
     def step(action):
         if recorder is not None:
@@ -79,5 +80,4 @@ def run_candidate(
             env.step(action)
         monitor.update()
 
-    execute(env, candidate, step=step)
-    return monitor.outcome
+    return step
