@@ -104,7 +104,7 @@ def decision_token(name: str, plan: dict | None, physics: ControlPhysics | None 
 
 def candidate_token(candidate: Candidate, physics: ControlPhysics | None = None) -> str:
     """What a proposal decision executes: the action, its executor's and the sampler's versions
-    (``grasp@1s1``), the physics mark and the candidate's parameters; a path key's token as
+    (``grasp@1s2``), the physics mark and the candidate's parameters; a path key's token as
     :func:`decision_token` is, so proposal attempts live in the same store."""
     mark = "" if physics is None else physics_mark(physics)
     version = f"{ACTIONS[candidate.action].version}s{SAMPLER_VERSION}"

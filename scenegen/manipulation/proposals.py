@@ -43,11 +43,13 @@ from scenegen.manipulation.primitives import (
 from scenegen.perception.observation import TargetView
 from scenegen.perception.robot_state import finger_gap, grip_site
 
-SAMPLER_VERSION = 1  # bump when what the sampler draws changes (labels are keyed by it)
+SAMPLER_VERSION = 2  # bump when what the sampler draws changes (labels are keyed by it)
 APPROACHES = ("top", "side")
 STANDOFF = 0.03  # m behind a push's contact point where the closed hand comes down
 SIDE_STANDOFF = 0.15  # m back along a side approach where the open hand waits before moving in
 TABLE_CLEARANCE = 0.01  # m: the grip site stays this far above the lowest visible point
+SIDE_CLEARANCE = 0.02  # m: a horizontal hand's grip site this far up (its fingers reach lower)
+REACH_IN = 0.05  # m: a horizontal approach ends up to this far past the visible point, inside the body
 PULL_RISE = 0.01  # m a pulled target is raised while dragged
 RETREAT = 0.08  # m the open hand backs off after a pull
 RISE = 0.12  # m the hand rises after a push or pull
@@ -145,8 +147,13 @@ def sample_candidates(
     def point() -> np.ndarray:
         return points[rng.integers(len(points))]
 
-    def height(p: np.ndarray) -> float:  # at or below the point, above the lowest point seen
-        return float(max(low, min(p[2], rng.uniform(low, top))))
+    def height(p: np.ndarray, clearance: float = TABLE_CLEARANCE) -> float:  # at or below p, above the lowest
+        floor = low + clearance - TABLE_CLEARANCE
+        return float(max(floor, min(p[2], rng.uniform(floor, max(floor, top)))))
+
+    def inside(p: np.ndarray, heading: list[float]) -> list[float]:  # past the surface, along the approach
+        reach = rng.uniform(0.0, REACH_IN)
+        return [float(p[0] + heading[0] * reach), float(p[1] + heading[1] * reach), height(p, SIDE_CLEARANCE)]
 
     out: list[Candidate] = []
     for _ in range(config.top):
@@ -156,8 +163,8 @@ def sample_candidates(
         out.append(Candidate("grasp", params))
     for _ in range(config.side):
         p = point()
-        params = {"approach": "side", "position": [float(p[0]), float(p[1]), height(p)]}
-        params["heading"] = _unit(_facing(view, rng, p))
+        heading = _unit(_facing(view, rng, p))
+        params = {"approach": "side", "position": inside(p, heading), "heading": heading}
         out.append(Candidate("grasp", params))
     for _ in range(config.push):
         p = point()
@@ -167,7 +174,8 @@ def sample_candidates(
         out.append(Candidate("push", params))
     for _ in range(config.pull):
         p = point()
-        params = {"position": [float(p[0]), float(p[1]), height(p)], "approach": _unit(_facing(view, rng, p))}
+        approach = _unit(_facing(view, rng, p))
+        params = {"position": inside(p, approach), "approach": approach}
         params["distance"] = float(rng.choice(PULL_DISTANCES))
         out.append(Candidate("pull", params))
     if grid is None:

@@ -92,10 +92,32 @@ def test_an_upright_and_a_toppled_mug_get_their_candidates_from_one_code_path(en
         points = view.target_points
         for c in candidates:
             at = np.asarray(c.params.get("position", c.params.get("contact")))
-            assert np.all(at[:2] >= points[:, :2].min(0) - 0.01) and np.all(
-                at[:2] <= points[:, :2].max(0) + 0.01
+            horizontal = c.action == "pull" or c.params.get("approach") == "side"
+            margin = 0.01 + (proposals.REACH_IN if horizontal else 0.0)  # a side hand reaches in
+            assert np.all(at[:2] >= points[:, :2].min(0) - margin) and np.all(
+                at[:2] <= points[:, :2].max(0) + margin
             )
             assert points[:, 2].min() - 0.005 <= at[2] <= points[:, 2].max() + 0.005, c
+
+
+def test_a_horizontal_hand_reaches_past_the_surface_it_sees_and_stays_clear_of_the_table(env):
+    view = _view(env, can_scene())
+    points = np.asarray(view.target_points)
+    config = SamplerConfig(top=0, side=12, push=0, pull=4)
+    reaches = []
+    for c in sample_candidates(view, np.random.default_rng(3), config):
+        heading = np.asarray(c.params.get("heading", c.params.get("approach")))
+        at = np.asarray(c.params["position"])
+        # the grip site is a visible point moved along the approach: into the body, never back out
+        back = at[:2] - points[:, :2]
+        along = back @ heading
+        across = np.abs(back @ np.array([-heading[1], heading[0]]))
+        fits = (across < 1e-9) & (along > -1e-9) & (along <= proposals.REACH_IN + 1e-9)
+        assert fits.any(), c
+        reaches.append(along[fits].max())
+        low = np.percentile(points[:, 2], 2)
+        assert at[2] >= low + proposals.SIDE_CLEARANCE - 1e-9, c
+    assert max(reaches) > 0.02  # some reach well inside
 
 
 def test_the_sampler_is_seeded_counts_its_kinds_and_lands_on_the_grid(env):
@@ -133,7 +155,7 @@ def test_a_candidate_names_a_known_action_and_a_view_without_points_is_refused(e
 def test_a_candidates_token_keys_its_action_versions_and_parameters():
     c = Candidate("grasp", {"approach": "top", "position": [0.1, 0.0, 0.85], "heading": [1.0, 0.0]})
     token = candidate_token(c)
-    assert token.startswith("grasp@1s1:") and token == candidate_token(Candidate.from_dict(c.as_dict()))
+    assert token.startswith(f"grasp@1s{proposals.SAMPLER_VERSION}:") and token == candidate_token(Candidate.from_dict(c.as_dict()))
     moved = Candidate("grasp", {**c.params, "position": [0.1, 0.005, 0.85]})
     assert candidate_token(moved) != token
     # a hand planner's plan with the same numbers is another attempt: the name and version lead
