@@ -155,7 +155,8 @@ def test_a_candidate_names_a_known_action_and_a_view_without_points_is_refused(e
 def test_a_candidates_token_keys_its_action_versions_and_parameters():
     c = Candidate("grasp", {"approach": "top", "position": [0.1, 0.0, 0.85], "heading": [1.0, 0.0]})
     token = candidate_token(c)
-    assert token.startswith(f"grasp@1s{proposals.SAMPLER_VERSION}:") and token == candidate_token(Candidate.from_dict(c.as_dict()))
+    assert token.startswith(f"grasp@1s{proposals.SAMPLER_VERSION}:")
+    assert token == candidate_token(Candidate.from_dict(c.as_dict()))
     moved = Candidate("grasp", {**c.params, "position": [0.1, 0.005, 0.85]})
     assert candidate_token(moved) != token
     # a hand planner's plan with the same numbers is another attempt: the name and version lead
