@@ -50,7 +50,7 @@ def add_commands(sub) -> None:
         nargs=4,
         metavar=("TOP", "SIDE", "PUSH", "PULL"),
         help="candidates per first decision: grasps from above, from the side, pushes, pulls "
-        "(default: SamplerConfig's)",
+        "(default 6 2 1 1: the labels issue 63 declares, sized to its budget)",
     )
     label.add_argument(
         "--physics", metavar="NAME", help="what the attempts are simulated under (default dt5)"
@@ -122,6 +122,7 @@ def proposals_label(args: argparse.Namespace) -> int:
 
     from scenegen.env.scenes import scene_sha256
     from scenegen.experiment.proposal_labels import (
+        DEFAULT_LABELS,
         LABEL_SETS,
         LabelConfig,
         label_layouts,
@@ -132,7 +133,7 @@ def proposals_label(args: argparse.Namespace) -> int:
 
     if args.workers < 1 or (args.limit is not None and args.limit < 1):
         return fail("--workers and --limit must be at least 1")
-    sampler = SamplerConfig() if args.sampler is None else SamplerConfig(*args.sampler)
+    sampler = DEFAULT_LABELS.sampler if args.sampler is None else SamplerConfig(*args.sampler)
     if min(sampler.top, sampler.side, sampler.push, sampler.pull) < 0 or sampler.total < 1:
         return fail("--sampler: four counts, none negative, at least one candidate")
     try:
