@@ -220,25 +220,32 @@ def run_job(
 REPLICATES = 2000
 
 
-def _grid(records: Sequence[dict], scored: str, tag: str) -> np.ndarray:
-    """(seeds, layouts) overlap hits of one (design, set, size)'s heads on the layouts of ``scored``
-    holding ``tag`` (``all``: every one), layouts in one order for every head (paired)."""
+def _grid(records: Sequence[dict], scored: str, tag: str, value: str = "hit_iou") -> np.ndarray:
+    """(seeds, layouts) ``value`` (overlap hits) of one (design, set, size)'s models on the layouts of
+    ``scored`` holding ``tag`` (``all``: every one), layouts in one order for every model (paired)."""
     rows = [[r for r in rec["rows"] if r["set"] == scored] for rec in records]
     keep = [i for i, r in enumerate(rows[0]) if tag == "all" or tag in r["tags"]]
     for other in rows[1:]:
         if [r["layout"] for r in other] != [r["layout"] for r in rows[0]]:
             raise ValueError("heads scored on different layouts: rerun their scoring")
-    return np.array([[float(r[i]["hit_iou"]) for i in keep] for r in rows])
+    return np.array([[float(r[i][value]) for i in keep] for r in rows])
 
 
 def _layouts(records: Sequence[dict], scored: str) -> list[str]:
     return [r["layout"] for r in records[0]["rows"] if r["set"] == scored]
 
 
-def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict:
-    """Per scored set, design, tag and size: the natural and rare-rich sets' overlap hit rates and
-    the rare-rich set's lead, each with its 95 % bootstrap interval over seeds and layouts (the
-    lead paired by layout); and the mean training CPU-seconds per design and size."""
+def curve_results(
+    records: Sequence[dict],
+    replicates: int = REPLICATES,
+    scored_sets: Sequence[str] = ("curve", PANEL),
+    designs: Sequence[str] = DESIGNS,
+    value: str = "hit_iou",
+) -> dict:
+    """Per scored set, design, tag and size: the natural and rare-rich sets' rates of ``value``
+    (overlap hits) and the rare-rich set's lead, each with its 95 % bootstrap interval over seeds and
+    layouts (the lead paired by layout); and the mean training CPU-seconds per design and size. A
+    record's ``job`` is ``design/set_n_seed``; its rows name the scored set, layout and tags."""
     from scenegen.experiment.transfer_stats import difference, interval
     from scenegen.policy.panels_v2 import panel_tags
 
@@ -247,7 +254,7 @@ def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict
         design, rest = rec["job"].split("/")
         set_name, n, _ = rest.rsplit("_", 2)
         by.setdefault((design, set_name, int(n)), []).append(rec)
-    designs = sorted({k[0] for k in by}, key=DESIGNS.index)
+    designs = sorted({k[0] for k in by}, key=list(designs).index)
     sizes = sorted({k[2] for k in by})
     out: dict = {"sizes": sizes, "cpu_seconds": {}, "scored": {}}
     for design in designs:
@@ -257,7 +264,7 @@ def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict
             )
             for n in sizes
         }
-    for scored in ("curve", PANEL):
+    for scored in scored_sets:
         tags = ["all", *panel_tags()] + (["nominal"] if scored == PANEL else [])
         table = out["scored"][scored] = {}
         for design in designs:
@@ -271,7 +278,7 @@ def curve_results(records: Sequence[dict], replicates: int = REPLICATES) -> dict
                         raise ValueError(
                             f"{design} {n}: the two sets' heads were scored on different layouts"
                         )
-                    natural, rare = (_grid(by[(design, s, n)], scored, tag) for s in SETS)
+                    natural, rare = (_grid(by[(design, s, n)], scored, tag, value) for s in SETS)
                     if natural.shape[1] == 0:  # no scored layout holds the tag
                         continue
                     table.setdefault(design, {}).setdefault(tag, {})[n] = {
@@ -322,9 +329,16 @@ _STYLE = {  # (design, set) -> BGR colour; instances solid, candidates thin
 }
 
 
-def plot_curves(results: dict, scored: str = "curve", size: tuple[int, int] = (1400, 720)) -> bytes:
-    """Small multiples, one per tag: overlap hit rate against training scenes (log scale), a line per
-    design and set with its 95 % interval. PNG bytes."""
+def plot_curves(
+    results: dict,
+    scored: str = "curve",
+    size: tuple[int, int] = (1400, 720),
+    title: str = "retrieval head: scene hit at IoU >= 0.5",
+    styles: dict | None = None,
+) -> bytes:
+    """Small multiples, one per tag: the rate (``title``) against training scenes (log scale), a line
+    per design and set with its 95 % interval; ``styles``: (design, set) -> BGR colour, the first
+    design drawn thick. PNG bytes."""
     import math
 
     import cv2
@@ -338,9 +352,11 @@ def plot_curves(results: dict, scored: str = "curve", size: tuple[int, int] = (1
     text = lambda s, xy, scale=0.45, colour=(0, 0, 0), thick=1: cv2.putText(  # noqa: E731
         image, s, xy, 0, scale, colour, thick, cv2.LINE_AA
     )
-    text(f"retrieval head: scene hit at IoU >= 0.5 against training scenes ({scored} set)", (20, 26), 0.6)
+    styles = styles or _STYLE
+    first = next(iter(styles))[0]
+    text(f"{title} against training scenes ({scored} set)", (20, 26), 0.6)
     legend = 20
-    for (design, set_name), colour in _STYLE.items():
+    for (design, set_name), colour in styles.items():
         if design in results["scored"][scored]:
             text(f"{design} {set_name.replace('_', '-')}", (legend, 52), 0.5, colour, 2)
             legend += 240
@@ -357,11 +373,11 @@ def plot_curves(results: dict, scored: str = "curve", size: tuple[int, int] = (1
             text(f"{k / 4:.2f}", (left - 38, y + 4), 0.38)
         for n in sizes:
             text(str(n), (x_of(n) - 10, top + ph + 16), 0.38)
-        for (design, set_name), colour in _STYLE.items():
+        for (design, set_name), colour in styles.items():
             cells = results["scored"][scored].get(design, {}).get(tag)
             if not cells:
                 continue
-            thick = 2 if design == "instances" else 1
+            thick = 2 if design == first else 1
             pts = [(x_of(n), y_of(cells[n][set_name]["mean"])) for n in sizes if n in cells]
             for a, b in zip(pts, pts[1:], strict=False):
                 cv2.line(image, a, b, colour, thick, cv2.LINE_AA)
