@@ -1,7 +1,7 @@
 """Proposal model commands (issue 63): `proposals label` (every candidate the generic sampler
 proposes, executed and measured; the sequence store the model learns from), `proposals train` (the
-quality model on labelled layouts) and `proposals eval` (its first-ranked candidate's success, a
-lookup in the labels)."""
+quality model on labelled layouts), `proposals eval` (its first-ranked candidate's success, a
+lookup in the labels) and `proposals compare` (two closed-loop runs' episodes, paired by layout)."""
 
 from __future__ import annotations
 
@@ -59,6 +59,23 @@ def add_commands(sub) -> None:
     label.set_defaults(run=proposals_label)
     _add_train(cmds)
     _add_eval(cmds)
+    _add_compare(cmds)
+
+
+def _add_compare(cmds) -> None:
+    co = cmds.add_parser(
+        "compare",
+        help="two closed-loop runs' episodes paired by layout: first attempt and whole episode",
+        description="Reads two episodes files of `scenegen experiment perception-gap` on the same layouts "
+        "(e.g. the proposal model's and the chooser's episodes_oracle.jsonl) and writes, per measure "
+        "(first-attempt success, whole-episode success) and group (all, each rare tag, nominal), both "
+        "rates and the first minus the second with its 95 %% bootstrap interval over layouts "
+        "(compare.json, compare.md under --out).",
+    )
+    co.add_argument("first", type=Path, help="episodes file (e.g. the proposal model's)")
+    co.add_argument("second", type=Path, help="episodes file to compare against (e.g. the chooser's)")
+    co.add_argument("--out", type=Path, required=True, help="folder for compare.json and compare.md")
+    co.set_defaults(run=proposals_compare)
 
 
 def _shared(parser, layouts: list[str]) -> None:
@@ -236,6 +253,44 @@ def proposals_eval(args: argparse.Namespace) -> int:
     }
     atomic_write(args.out / "summary.json", json.dumps({**summary, "by_tag": table}, indent=1) + "\n")
     atomic_write(args.out / "summary.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"-> {args.out}")
+    return 0
+
+
+def proposals_compare(args: argparse.Namespace) -> int:
+    import json
+
+    from scenegen.experiment.proposal_loop import compare_episodes
+    from scenegen.store.batch import atomic_write
+
+    rows = []
+    for path in (args.first, args.second):
+        try:
+            rows.append([json.loads(line) for line in path.read_text().splitlines() if line.strip()])
+        except (OSError, ValueError) as exc:
+            return fail(
+                f"{path}: {first_line(exc)} (an episodes .jsonl of `scenegen experiment perception-gap`)"
+            )
+    try:
+        table = compare_episodes(*rows)
+    except (KeyError, ValueError) as exc:
+        return fail(f"{args.first} against {args.second}: {first_line(exc)}")
+    lines = [
+        "| measure | group | layouts | first | second | first - second (points) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for measure, groups in table.items():
+        for name, c in groups.items():
+            d = c["difference"]
+            lines.append(
+                f"| {measure} | {name} | {d['scenes']} | {c['first']:.3f} | {c['second']:.3f} | "
+                f"{100 * d['mean']:+.1f} [{100 * d['low']:+.1f}, {100 * d['high']:+.1f}] |"
+            )
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write(args.out / "compare.json", json.dumps({"first": str(args.first), "second": str(args.second),
+                                                        **table}, indent=1) + "\n")  # fmt: skip
+    atomic_write(args.out / "compare.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"-> {args.out}")
     return 0

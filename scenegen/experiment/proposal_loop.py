@@ -198,3 +198,32 @@ def _record(run: _Run) -> dict:
         "failure": "" if run.success else ("target_not_seen" if not run.sequence else "unlabelled"),
         "out_of_time": bool(not run.success and run.entry is not None and run.entry["time"] >= TIME_LIMIT),
     }
+
+
+def compare_episodes(first: Sequence[dict], second: Sequence[dict], replicates: int = 2000) -> dict:
+    """Paired by layout (scene sha256): per measure (``first_attempt``, ``success``) and group
+    (``all``, each rare tag, ``nominal``), both policies' rates and ``first`` minus ``second`` with
+    its 95 % bootstrap interval over layouts. ValueError when the two ran on different layouts."""
+    from scenegen.experiment.transfer_stats import difference
+
+    a = {r["scene_sha256"]: r for r in first}
+    b = {r["scene_sha256"]: r for r in second}
+    if set(a) != set(b):
+        raise ValueError(f"the episodes cover different layouts ({len(set(a) ^ set(b))} on one side only)")
+    order = sorted(a)
+    groups = {"all": order, "nominal": [k for k in order if not a[k]["tags"]]}
+    for tag in RARE_TAGS:
+        groups[tag] = [k for k in order if tag in a[k]["tags"]]
+    out: dict = {}
+    for measure in ("first_attempt", "success"):
+        for name, keys in groups.items():
+            if not keys:
+                continue
+            x = np.array([[float(a[k][measure]) for k in keys]])
+            y = np.array([[float(b[k][measure]) for k in keys]])
+            out.setdefault(measure, {})[name] = {
+                "first": round(float(x.mean()), 4),
+                "second": round(float(y.mean()), 4),
+                "difference": difference(x, y, replicates, seed=len(keys)),
+            }
+    return out

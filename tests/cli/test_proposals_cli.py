@@ -56,3 +56,33 @@ def test_perception_gap_with_a_folder_that_is_not_a_proposal_model_says_so(tmp_p
     err = capsys.readouterr().err
     assert "not a proposal model" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "gap").exists()
+
+
+def _episodes(path: Path, outcomes: list[tuple[bool, bool]], tags=(["toppled"], [], ["toppled"], [])) -> Path:
+    rows = [
+        {"scene_sha256": f"{k:064x}", "first_attempt": first, "success": whole, "tags": list(t)}
+        for k, ((first, whole), t) in enumerate(zip(outcomes, tags, strict=True))
+    ]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def test_compare_pairs_two_runs_by_layout_and_refuses_runs_on_other_layouts(tmp_path: Path, capsys):
+    a = _episodes(tmp_path / "a.jsonl", [(True, True), (False, True), (True, True), (False, False)])
+    b = _episodes(tmp_path / "b.jsonl", [(False, True), (False, False), (True, True), (False, False)])
+    assert main(["proposals", "compare", str(a), str(b), "--out", str(tmp_path / "cmp")]) == 0
+    table = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    first, whole = table["first_attempt"]["all"], table["success"]["all"]
+    assert (first["first"], first["second"], first["difference"]["mean"]) == (0.5, 0.25, 0.25)
+    assert (whole["first"], whole["second"], whole["difference"]["mean"]) == (0.75, 0.5, 0.25)
+    assert whole["difference"]["low"] <= 0.25 <= whole["difference"]["high"]
+    assert table["success"]["toppled"]["difference"]["scenes"] == 2
+    assert table["success"]["nominal"]["difference"]["mean"] == 0.5
+    assert "| success | all | 4 | 0.750 | 0.500 | +25.0 [" in (tmp_path / "cmp" / "compare.md").read_text()
+    capsys.readouterr()
+    short = tmp_path / "c.jsonl"
+    short.write_text("".join(a.read_text().splitlines(keepends=True)[:3]))
+    assert main(["proposals", "compare", str(short), str(b), "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert "different layouts (1 on one side only)" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "bad").exists()
