@@ -1,7 +1,8 @@
 """The proposal model's learning curves (issue 63, point 5; scenegen/experiment/proposal_curves.py):
 for each training-set size and seed, a model trained on the natural-rate set and one on the
 rare-rich set of that size, scored by its first-ranked candidate's label on the curve set's rare
-layouts, through the simulator's masks (oracle) and through the default retrieval head. Reads the
+layouts, through the simulator's masks (oracle) and through the default retrieval head, beside the
+hand chooser's first attempt (assets/policy/baseline, simulated once into MODELS/chooser). Reads the
 labels of `scenegen proposals label` (all of its default sets); resumable: a model whose scores
 exist is not trained again.
 
@@ -28,6 +29,8 @@ from scenegen.experiment.proposal_curves import (
     SIZES,
     STEPS,
     STYLES,
+    chooser_results,
+    chooser_rows,
     prepare,
     proposal_jobs,
     run_job,
@@ -70,10 +73,20 @@ def main() -> int:
     results = curve_results(records, scored_sets=("curve",), designs=SIGHTS, value="success")
     results["leads"] = {"curve": leads(results, "curve")}
     results["steps"] = args.steps
+    results["chooser"] = chooser_results(
+        chooser_rows(args.models / "chooser", args.head, workers=args.workers)
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write(args.out / "results.json", json.dumps(results, indent=1) + "\n")
     table = curve_table(results, "curve").replace("| design |", "| sight |")
-    atomic_write(args.out / "curves.md", f"## curve set: first-ranked candidate's success\n\n{table}")
+    chooser = ["| sight | tag | layouts | first-attempt success |", "|---|---|---|---|"]
+    for sight, tags in results["chooser"].items():
+        chooser += [f"| {sight} | {t} | {c['scenes']} | {c['mean']:.3f} [{c['low']:.3f}, {c['high']:.3f}] |"
+                    for t, c in tags.items()]  # fmt: skip
+    text = (
+        f"## curve set: first-ranked candidate's success\n\n{table}\n## the hand chooser, first attempt\n\n"
+    )
+    atomic_write(args.out / "curves.md", text + "\n".join(chooser) + "\n")
     title = "proposal model: first-ranked candidate's success"
     atomic_write(args.out / "curves.png", plot_curves(results, "curve", title=title, styles=STYLES))
     print(table)

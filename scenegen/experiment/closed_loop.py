@@ -33,6 +33,7 @@ from scenegen.experiment.sequences import (
     ObservationStore,
     PathStore,
     Variant,
+    again_point,
     decision_token,
     match,
     path_key,
@@ -241,12 +242,6 @@ def regrasp_plan(
     return plan_digest(None if view is None else make_plan("top_grasp", view, grid))
 
 
-def again_point(sha: str, tokens: Sequence[str], primitive: str, number: int) -> str:
-    """The decision point of the ``number``-th re-observation inside ``primitive``, run after
-    ``tokens``: what seeds a variant's sensor there (the decision's own is ``path_key``)."""
-    return f"{path_key(sha, tokens)}|{primitive}|again{number}"
-
-
 def _job(job: tuple) -> tuple:
     """One job for a worker; returns (kind, result, CPU seconds it took)."""
     import time
@@ -386,6 +381,8 @@ def evaluate_policies(
     cost: Cost | None = None,
     rules: int | None = None,
     grid: PlanGrid | None = None,
+    attempts: int = ATTEMPTS,
+    experts: bool = True,
 ) -> list[dict]:
     """Episodes of every policy (name -> loaded PrimitivePolicy) on every scene; one record each:
     policy, scene id, tags, target category, the primitives chosen, success, failure labels.
@@ -394,8 +391,9 @@ def evaluate_policies(
     head every decision and re-observation sees through (None: the oracle's masks); ``cost``: a
     :class:`Cost` to count the sharing and the CPU in; ``rules``: the perception rules' version that
     scores a head's decisions (default ``PERCEPTION_RULES``; observations are kept per version);
-    ``grid``: the resolution plans are executed at (None: as planned). The expert rows stay the
-    oracle's, as planned: they say what the physics allows."""
+    ``grid``: the resolution plans are executed at (None: as planned); ``attempts``: per episode (1:
+    first decisions only). The expert rows (``experts``) stay the oracle's, as planned: they say what
+    the physics allows."""
     import torch
 
     from scenegen.perception.retrieval.evaluate import PERCEPTION_RULES
@@ -403,14 +401,15 @@ def evaluate_policies(
     rules = PERCEPTION_RULES if rules is None else rules
     if workers is None:
         with Workers(1) as here:
+            options = {"rules": rules, "grid": grid, "attempts": attempts, "experts": experts}
             return evaluate_policies(
-                policies, scenes, store, observations, variant, here, progress, retrieval, cost, rules, grid
+                policies, scenes, store, observations, variant, here, progress, retrieval, cost, **options
             )
     cost = cost if cost is not None else Cost()
     seen = sight(retrieval, variant, rules) + (f"|{grid.key()}" if grid is not None else "")
     seen += physics_mark(workers.physics)  # a decision's plan tokens name the physics they run under
     runs = [_Run(name, s, scene_sha256(s)) for name in policies for s in scenes]
-    for _ in range(ATTEMPTS):
+    for _ in range(attempts):
         for r in runs:  # a policy that has tried every primitive it knows stops; so does the clock
             r.done = r.done or len(r.prefix) >= len(policies[r.policy].primitives)
             r.done = r.done or (r.entry is not None and r.entry["time"] >= TIME_LIMIT)
@@ -428,7 +427,7 @@ def evaluate_policies(
         _resolve(going, store, observations, variant, seen, retrieval, workers, cost, progress, grid)
         for r in going:
             r.success = r.done = bool(r.entry["success"])
-    failed = {r.sha: r.scene for r in runs if not r.success}
+    failed = {r.sha: r.scene for r in runs if not r.success and experts}
     known = sorted({p for policy in policies.values() for p in policy.primitives}, key=list(PRIMITIVES).index)
     experts = expert_rows(store, observations, failed.values(), known, workers, progress)
     return [_record(r, store, experts, policies[r.policy], rules) for r in runs]

@@ -22,6 +22,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from scenegen.env.scenes import EnvScene, scene_sha256
 from scenegen.experiment.proposal_data import examples
 from scenegen.experiment.proposal_labels import label_layouts, open_labels
@@ -147,3 +149,42 @@ def run_job(
         {"job": f"{sight}/{job.name}", "training_cpu_s": record["training_cpu_s"], "rows": rows}
         for sight, rows in record["rows"].items()
     ]
+
+
+def chooser_rows(
+    folder: Path, head: Path | None, scored: Sequence[EnvScene] | None = None, workers: int = 1
+) -> dict[str, list[dict]]:
+    """The hand chooser's (``assets/policy/baseline``) first-attempt success on ``scored`` (default
+    the curve set), through each sight, as the models' rows: the baseline beside the curves. Its
+    attempts are kept under ``folder`` (a sequence store; a rerun simulates nothing)."""
+    from scenegen.experiment.closed_loop import Workers, evaluate_policies
+    from scenegen.experiment.sequences import ObservationStore, PathStore
+    from scenegen.paths import ASSETS_DIR
+    from scenegen.policy.network import PrimitivePolicy
+
+    scored = scored if scored is not None else scoring()
+    folder = Path(folder)
+    store, observations = PathStore(folder / "paths.jsonl"), ObservationStore(folder / "observations")
+    policies = {"chooser": PrimitivePolicy.load(ASSETS_DIR / "policy" / "baseline")}
+    out = {}
+    with Workers(workers) as pool:
+        for sight, retrieval in zip(SIGHTS, (None, head), strict=True):
+            records = evaluate_policies(policies, scored, store, observations, workers=pool,
+                                        retrieval=retrieval, attempts=1, experts=False)  # fmt: skip
+            picks = {r["scene_sha256"]: {"success": r["success"], "any": r["success"]} for r in records}
+            out[sight] = _rows(picks, scored, "curve")
+    return out
+
+
+def chooser_results(rows: dict[str, list[dict]], replicates: int = 2000) -> dict:
+    """Per sight and tag (``all`` and each rare tag held): the chooser's first-attempt success with
+    its 95 % bootstrap interval over layouts."""
+    from scenegen.experiment.transfer_stats import interval
+
+    out: dict = {}
+    for sight, sight_rows in rows.items():
+        tags = ["all", *sorted({t for r in sight_rows for t in r["tags"]})]
+        for tag in tags:
+            keep = [float(r["success"]) for r in sight_rows if tag == "all" or tag in r["tags"]]
+            out.setdefault(sight, {})[tag] = interval(np.array([keep]), replicates, seed=len(keep))
+    return out

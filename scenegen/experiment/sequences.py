@@ -119,6 +119,12 @@ def path_key(sha: str, tokens: Sequence[str]) -> str:
     return f"{sha}|rules{SEQUENCE_RULES}|" + "|".join(tokens)
 
 
+def again_point(sha: str, tokens: Sequence[str], primitive: str, number: int) -> str:
+    """The decision point of the ``number``-th re-observation inside ``primitive``, run after
+    ``tokens``: what seeds a variant's sensor there (the decision's own is ``path_key``)."""
+    return f"{path_key(sha, tokens)}|{primitive}|again{number}"
+
+
 def sight(retrieval: Path | None, variant: Variant, rules: int | None = None) -> str:
     """What the planners see through: ``oracle`` (the simulator's masks: lighting cannot change a
     plan), or a retrieval head under ``variant``'s lighting, which its predictions, hence the plans,

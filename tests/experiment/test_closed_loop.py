@@ -147,3 +147,20 @@ def test_on_a_plan_grid_the_decision_observed_and_the_attempt_simulated_share_th
     again = Cost()
     repeat = evaluate_policies(policies, scenes, store, observations, retrieval=head, cost=again, grid=grid)
     assert repeat == snapped and again.simulated == 0 and again.shared == again.attempts
+
+
+def test_one_attempt_without_experts_is_each_episodes_first_decision(learned_run):
+    """``attempts=1, experts=False`` (the chooser's first-attempt figure beside the proposal model's
+    curves): each record is its full episode's first attempt, served from the store, and no expert
+    row is simulated for a failure."""
+    from scenegen.experiment.closed_loop import evaluate_policies
+
+    _, policies, scenes, store, observations, records, _ = learned_run
+    keys, cost = set(store.entries), Cost()
+    head = ROOT / "retrieval" / "baseline"
+    first = evaluate_policies(
+        policies, scenes, store, observations, retrieval=head, cost=cost, attempts=1, experts=False
+    )
+    assert [r["choices"] for r in first] == [r["choices"][:1] for r in records]
+    assert [r["success"] for r in first] == [r["first_attempt"] for r in records]
+    assert set(store.entries) == keys and cost.simulated == 0 and cost.attempts == len(records)

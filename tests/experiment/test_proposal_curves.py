@@ -6,10 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from scenegen.env.scenes import scene_sha256
-from scenegen.experiment.proposal_curves import SIGHTS, ProposalJob, run_job
+from scenegen.experiment.proposal_curves import SIGHTS, ProposalJob, chooser_results, chooser_rows, run_job
 from scenegen.experiment.proposal_labels import LabelConfig, label_layouts, label_proposals, open_labels
 from scenegen.experiment.retrieval_curves import curve_results, curve_table, leads
 from scenegen.manipulation.proposals import SamplerConfig
@@ -60,3 +61,20 @@ def test_a_set_with_a_layout_not_yet_labelled_is_refused(labelled, tmp_path: Pat
             ProposalJob("natural", 3, 0), tmp_path, labels, None, scored=scenes[:2], train=scenes, steps=5
         )
     assert not (tmp_path / "natural_3_0" / "scores.json").exists()
+
+
+def test_the_choosers_first_attempt_beside_the_curves_is_simulated_once(labelled, tmp_path: Path):
+    _, scenes = labelled
+    layouts = scenes[:2]
+    rows = chooser_rows(tmp_path / "chooser", DEFAULT_HEAD, scored=layouts)
+    assert list(rows) == list(SIGHTS)
+    for sight_rows in rows.values():
+        assert [r["layout"] for r in sight_rows] == [scene_sha256(s) for s in layouts]
+        assert all(r["success"] == r["any"] for r in sight_rows)
+    stored = (tmp_path / "chooser" / "paths.jsonl").read_text()
+    assert 1 <= len(stored.splitlines()) <= 4  # one first attempt per layout and sight, shared where alike
+    assert chooser_rows(tmp_path / "chooser", DEFAULT_HEAD, scored=layouts) == rows
+    assert (tmp_path / "chooser" / "paths.jsonl").read_text() == stored  # a rerun simulates nothing
+    table = chooser_results(rows, replicates=50)
+    oracle = table["oracle"]["all"]
+    assert oracle["scenes"] == 2 and oracle["mean"] == np.mean([r["success"] for r in rows["oracle"]])

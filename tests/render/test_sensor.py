@@ -87,8 +87,8 @@ def test_a_re_observation_under_noise_plans_as_the_simulation_did():
 
     from scenegen.assets.catalog import load_catalog
     from scenegen.env.scenes import proposal_scene
-    from scenegen.experiment.closed_loop import again_point, regrasp_plan, simulate
-    from scenegen.experiment.sequences import NOMINAL, Variant
+    from scenegen.experiment.closed_loop import regrasp_plan, simulate
+    from scenegen.experiment.sequences import NOMINAL, Variant, again_point
     from scenegen.policy.labels import scene_sha256
     from scenegen.schema.scene import Light, Lighting
 
