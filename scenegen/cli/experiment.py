@@ -176,6 +176,14 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
         "the robot sees, the best by the model executed, proposed anew after each attempt",
     )
     gap.add_argument(
+        "--candidates",
+        type=int,
+        nargs=4,
+        metavar=("TOP", "SIDE", "PUSH", "PULL"),
+        help="with --proposals: candidates proposed per decision, grasps from above, from the side, pushes, "
+        "pulls (default 24 8 2 2)",
+    )
+    gap.add_argument(
         "--retrieval",
         type=Path,
         help=f"head (default {DEFAULT_HEAD.relative_to(ASSETS_DIR.parent)}; through --sensor active_stereo "
@@ -213,6 +221,7 @@ def _add_perception_gap(kinds, panels_file: Path) -> None:
 def perception_gap(args: argparse.Namespace) -> int:
     from scenegen.core.files import CheckpointError
     from scenegen.experiment.perception_gap import markdown, run_gap
+    from scenegen.manipulation.proposals import SamplerConfig
     from scenegen.perception.retrieval import default_head
     from scenegen.perception.retrieval.perceive import RetrievalPerception
     from scenegen.policy.network import PrimitivePolicy
@@ -220,6 +229,10 @@ def perception_gap(args: argparse.Namespace) -> int:
 
     if args.workers < 1 or (args.limit is not None and args.limit < 1):
         return fail("--workers and --limit must be at least 1")
+    if args.candidates is not None and (
+        args.proposals is None or min(args.candidates) < 0 or sum(args.candidates) < 1
+    ):
+        return fail("--candidates: four counts, none negative, at least one candidate, with --proposals")
     args.retrieval = args.retrieval or default_head(args.sensor)
     try:
         if args.proposals is not None:
@@ -240,7 +253,7 @@ def perception_gap(args: argparse.Namespace) -> int:
         return fail(f"--physics {first_line(exc)}")
     summary = run_gap(
         args.checkpoint, args.retrieval, panel, args.out, args.workers, not args.quiet, args.perception_rules,
-        args.sensor, physics, args.proposals,
+        args.sensor, physics, args.proposals, args.candidates and SamplerConfig(*args.candidates),
     )  # fmt: skip
     print(markdown(summary), end="")
     print(f"-> {args.out}")

@@ -11,6 +11,7 @@ observation cache keep what was measured).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections import Counter
@@ -66,13 +67,15 @@ def run_gap(
     sensor: str = "exact",
     physics: str = DEFAULT_PHYSICS,
     proposals: Path | None = None,
+    candidates=None,
 ) -> dict:
     """Evaluate the policy at ``checkpoint`` on ``panel`` (panel name -> EnvScenes, each with its
     ``panel_id``) through ``retrieval`` and through the oracle, the head's decisions scored by the
     perception rules' version ``rules`` (default: the current one), every depth frame through
     ``sensor`` (exact: the renderer's), simulated under ``physics``; write and return the summary.
     ``proposals``: a proposal model's folder acts instead of the policy (issue 63: sampled candidates
-    ranked by the model, ``proposal_loop.evaluate_proposals``)."""
+    ranked by the model, ``proposal_loop.evaluate_proposals``), ``candidates`` of them per decision (a
+    SamplerConfig; default ``proposal_loop.DECISIONS``')."""
     from tqdm import tqdm
 
     from scenegen.core.files import folder_sha256
@@ -83,6 +86,10 @@ def run_gap(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     policy = PrimitivePolicy.load(checkpoint) if proposals is None else None
+    if proposals is not None:
+        from scenegen.experiment.proposal_loop import DECISIONS, evaluate_proposals
+
+        decisions = DECISIONS if candidates is None else dataclasses.replace(DECISIONS, sampler=candidates)
     scenes = list({panel_id(s): s for ss in panel.values() for s in ss}.values())
     ids = {name: [panel_id(s) for s in ss] for name, ss in panel.items()}
     store = PathStore(out / "paths.jsonl")
@@ -95,7 +102,11 @@ def run_gap(
         "layouts": len(scenes),
         **({"sensor": sensor} if sensor != "exact" else {}),
         **(
-            {"proposals": str(proposals), "proposals_sha256": folder_sha256(Path(proposals))}
+            {
+                "proposals": str(proposals),
+                "proposals_sha256": folder_sha256(Path(proposals)),
+                "candidates": dataclasses.asdict(decisions.sampler),
+            }  # fmt: skip
             if proposals
             else {}
         ),
@@ -109,12 +120,9 @@ def run_gap(
             began = time.monotonic()
             with tqdm(desc=setting, unit=" jobs", disable=not progress) as bar:
                 if proposals is not None:
-                    from scenegen.experiment.proposal_loop import evaluate_proposals
-
                     tick = lambda _, bar=bar: bar.update()  # noqa: E731
-                    records = evaluate_proposals(
-                        proposals, scenes, store, observations, pool, head, variant, cost=cost, progress=tick
-                    )
+                    records = evaluate_proposals(proposals, scenes, store, observations, pool, head, variant,
+                                                 decisions, cost=cost, progress=tick)  # fmt: skip
                 else:
                     records = evaluate_policies(
                         {"policy": policy},

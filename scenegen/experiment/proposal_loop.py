@@ -13,6 +13,7 @@ decision point, the sight and the model's folder digest, so a rerun decides noth
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -34,11 +35,14 @@ from scenegen.experiment.sequences import (
     candidate_token,
     sight,
 )
-from scenegen.manipulation.proposals import Candidate, sample_candidates
+from scenegen.manipulation.proposals import Candidate, SamplerConfig, sample_candidates
 from scenegen.manipulation.task import TIME_LIMIT
 from scenegen.policy.evaluate import ATTEMPTS
 from scenegen.schema.condition import RARE_TAGS
 
+# A decision proposes more than a layout's labels hold: scoring is cheap (0.095 CPU-s for 36
+# candidates against 0.025 for the labels' 10; the frames cost 0.5-0.7 either way: docs/policy.md)
+DECISIONS = dataclasses.replace(DEFAULT_LABELS, sampler=SamplerConfig(top=24, side=8, push=2, pull=2))
 _MODELS: dict[str, object] = {}
 
 
@@ -120,7 +124,7 @@ def evaluate_proposals(
     workers: Workers,
     retrieval: Path | None = None,
     variant: Variant = NOMINAL,
-    config: LabelConfig = DEFAULT_LABELS,
+    config: LabelConfig = DECISIONS,
     cost: Cost | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> list[dict]:
