@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scenegen.perception.points import TargetEstimate, estimate_target, masked_points, target_points
+from scenegen.perception.points import TargetEstimate, estimate_target, inliers, masked_points
 from scenegen.perception.robot_state import grip_site
 
 
@@ -60,23 +60,41 @@ def observe(env, perception=None, image: bool = True) -> tuple[dict, TargetView 
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
     background = {scene.segmentation[name] for name in BACKGROUND}
+    robust = sensed(env)
     target, others = [], []
     for name in env.cameras:
-        depth, seg = obs[f"{name}_depth"], obs[f"{name}_segmentation"]
-        target.append(target_points(depth, seg, scene.target_id, cameras[name]))
+        depth, seg = obs[f"{name}_depth"], np.squeeze(obs[f"{name}_segmentation"])
+        target.append(masked_points(depth, seg == scene.target_id, cameras[name], robust))
         for instance in set(np.unique(seg)) - background - {0, scene.target_id}:
-            others.append(target_points(depth, seg, int(instance), cameras[name]))
-    seen = np.concatenate(target)
-    estimate = estimate_target(seen)
-    if estimate is None:
-        return obs, None
+            others.append(masked_points(depth, seg == instance, cameras[name], robust))
     points = np.concatenate(others) if others else np.zeros((0, 3))
+    return obs, _view(env, np.concatenate(target), points[points[:, 2] > _floor(robust)], robust)
+
+
+def sensed(env) -> bool:
+    """Whether ``env``'s depth comes from a sensor (read by the robust rule: perception/points.py)."""
+    return getattr(env, "depth_sensor", None) is not None
+
+
+def _floor(robust: bool) -> float:
+    """Points at or below this height are not objects: the table's (a sensor's depth: its noise)."""
+    return TABLE_TOP + (SENSOR_ABOVE_TABLE if robust else -np.inf)
+
+
+def _view(env, seen: np.ndarray, others: np.ndarray, robust: bool) -> TargetView | None:
+    if robust:  # a sensed target: its points under the table and far from the rest are errors
+        seen = inliers(seen[seen[:, 2] > TABLE_TOP - SENSOR_BELOW_TABLE])
+    estimate = estimate_target(seen, robust)
+    if estimate is None:
+        return None
     base, closing = _robot_state(env)
-    return obs, TargetView(estimate, points, base, closing, seen)
+    return TargetView(estimate, others, base, closing, seen)
 
 
 TABLE_MARGIN = 0.05  # m beyond the table's edges where points still count (an overhanging object)
 ABOVE_TABLE = 0.0015  # m: points lower than this above the table top are the table (a fork lies 3 mm high)
+SENSOR_ABOVE_TABLE = 0.015  # m: the same through a sensor, above its noise (3.5-7 mm at 1.4 m)
+SENSOR_BELOW_TABLE = 0.02  # m: a sensed target point lower than this under the table top is an error
 
 
 def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
@@ -87,25 +105,22 @@ def _observe_learned(env, perception) -> tuple[dict, TargetView | None]:
     scene = env.scene
     cameras = {c.name: c for c in scene.cameras}
     masks = perception.target_masks(obs, env.cameras, env.requested_category, scene.cameras)
+    robust = sensed(env)
+    above = SENSOR_ABOVE_TABLE if robust else ABOVE_TABLE
     target, others = [], []
     for name in env.cameras:
         depth, robot = obs[f"{name}_depth"], np.squeeze(obs[f"{name}_robot_mask"], -1)
         mask = masks[name]
         obs[f"{name}_predicted_target"] = mask[..., None]
-        target.append(masked_points(depth, mask, cameras[name]))
+        target.append(masked_points(depth, mask, cameras[name], robust))
         rest = masked_points(depth, ~mask & ~robot, cameras[name])
         on_table = (
-            (rest[:, 2] > TABLE_TOP + ABOVE_TABLE)
+            (rest[:, 2] > TABLE_TOP + above)
             & (np.abs(rest[:, 0]) <= TABLE_HALF[0] + TABLE_MARGIN)
             & (np.abs(rest[:, 1]) <= TABLE_HALF[1] + TABLE_MARGIN)
         )
         others.append(rest[on_table])
-    seen = np.concatenate(target)
-    estimate = estimate_target(seen)
-    if estimate is None:
-        return obs, None
-    base, closing = _robot_state(env)
-    return obs, TargetView(estimate, np.concatenate(others), base, closing, seen)
+    return obs, _view(env, np.concatenate(target), np.concatenate(others), robust)
 
 
 def _robot_state(env) -> tuple[tuple[float, float], tuple[float, float]]:

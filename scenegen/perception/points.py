@@ -18,6 +18,12 @@ from scenegen.core.rotations import camera_rotation
 from scenegen.schema.scene import Camera
 
 MIN_POINTS = 20  # fewer masked pixels than this: the target is not seen
+# A depth sensor's frame (render/sensor.py) is read by a robust rule (``robust=True``): a stereo pair's
+# depth at a mask's edge mixes the object and what lies behind it, and a mismatched block can put a
+# pixel metres along its ray. Exact depth keeps the plain rule, so its plans keep their bytes.
+SENSOR_ERODE = 1  # px: the mask shrunk by this before back-projection, where MIN_POINTS stay
+SENSOR_REACH = 0.2  # m (xy) from the points' median beyond which a sensed point is an error
+SENSOR_RANGE = (2.0, 98.0)  # percentiles of the footprint's spread taken as its extent
 
 
 def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camera) -> np.ndarray:
@@ -28,10 +34,18 @@ def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camer
     return masked_points(depth, np.squeeze(seg) == target_id, cam)
 
 
-def masked_points(depth: np.ndarray, mask: np.ndarray, cam: Camera) -> np.ndarray:
+def masked_points(depth: np.ndarray, mask: np.ndarray, cam: Camera, robust: bool = False) -> np.ndarray:
     """World points (N, 3) of the pixels of ``mask`` (H, W) bool that have depth (see
-    :func:`target_points`)."""
+    :func:`target_points`); ``robust`` (a sensor's depth): the mask eroded by ``SENSOR_ERODE`` px
+    first, where enough pixels remain."""
     depth, mask = np.squeeze(depth), np.squeeze(mask)
+    if robust and SENSOR_ERODE > 0:
+        import cv2
+
+        size = 2 * SENSOR_ERODE + 1
+        inner = cv2.erode(mask.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+        if np.count_nonzero(inner & (depth > 0)) >= MIN_POINTS:
+            mask = inner
     height, width = depth.shape
     if (cam.width, cam.height) != (width, height):
         cam = cam.model_copy(update={"width": width, "height": height})
@@ -66,8 +80,20 @@ class TargetEstimate:
         return self.top_z - self.bottom_z
 
 
-def estimate_target(points: np.ndarray) -> TargetEstimate | None:
-    """A summary of the target's visible points; None when too few are seen (``MIN_POINTS``)."""
+def inliers(points: np.ndarray) -> np.ndarray:
+    """The points within ``SENSOR_REACH`` (xy) of their median: a sensed target's, its errors gone."""
+    if len(points) == 0:
+        return points
+    near = np.linalg.norm(points[:, :2] - np.median(points[:, :2], axis=0), axis=1) <= SENSOR_REACH
+    return points[near]
+
+
+def estimate_target(points: np.ndarray, robust: bool = False) -> TargetEstimate | None:
+    """A summary of the target's visible points; None when too few are seen (``MIN_POINTS``).
+    ``robust`` (a sensor's depth): points beyond ``SENSOR_REACH`` of the median dropped, the
+    footprint's extents and middle from the ``SENSOR_RANGE`` percentiles, not the extremes."""
+    if robust:
+        points = inliers(points)
     if len(points) < MIN_POINTS:
         return None
     xy = points[:, :2] - points[:, :2].mean(axis=0)
@@ -77,13 +103,19 @@ def estimate_target(points: np.ndarray) -> TargetEstimate | None:
     along, across = xy @ major, xy @ minor
     low, high = np.percentile(points[:, 2], [2, 98])
     centroid = points.mean(axis=0)
-    middle = 0.5 * (points[:, :2].min(axis=0) + points[:, :2].max(axis=0))
+    if robust:
+        span = lambda v: float(np.subtract(*np.percentile(v, SENSOR_RANGE[::-1])))  # noqa: E731
+        lo, hi = np.percentile(points[:, :2], SENSOR_RANGE, axis=0)
+        middle, extent = 0.5 * (lo + hi), (span(along), span(across))
+    else:
+        middle = 0.5 * (points[:, :2].min(axis=0) + points[:, :2].max(axis=0))
+        extent = (float(np.ptp(along)), float(np.ptp(across)))
     return TargetEstimate(
         centroid=centroid,
         centre=np.array([middle[0], middle[1], centroid[2]]),
         top_z=float(high),
         bottom_z=float(low),
         yaw=float(np.arctan2(major[1], major[0])),
-        extent=(float(np.ptp(along)), float(np.ptp(across))),
+        extent=extent,
         points=len(points),
     )
