@@ -209,9 +209,10 @@ class ObservationStore:
     def key(sha: str, tokens: Sequence[str], variant: Variant, inputs: str, seen: str = "oracle") -> str:
         shown = f"{variant.name}:{variant.light_scale}"
         if variant.sensor is not None:
+            from scenegen.perception.points import SENSED_POINTS
             from scenegen.render.sensor import SENSORS
 
-            shown += f":{SENSORS[variant.sensor].key()}"
+            shown += f":{SENSORS[variant.sensor].key()}:points{SENSED_POINTS}"  # what reads its depth
         text = f"{path_key(sha, tokens)}|{seen}|{shown}|{inputs}"
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 

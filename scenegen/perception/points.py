@@ -21,6 +21,7 @@ MIN_POINTS = 20  # fewer masked pixels than this: the target is not seen
 # A depth sensor's frame (render/sensor.py) is read by a robust rule (``robust=True``): a stereo pair's
 # depth at a mask's edge mixes the object and what lies behind it, and a mismatched block can put a
 # pixel metres along its ray. Exact depth keeps the plain rule, so its plans keep their bytes.
+SENSED_POINTS = 2  # the rule's version (1: the plain rule); keys the decisions made through a sensor
 SENSOR_ERODE = 1  # px: the mask shrunk by this before back-projection, where MIN_POINTS stay
 SENSOR_REACH = 0.2  # m (xy) from the points' median beyond which a sensed point is an error
 SENSOR_RANGE = (2.0, 98.0)  # percentiles of the footprint's spread taken as its extent

@@ -89,7 +89,8 @@ def test_compare_pairs_two_runs_by_layout_and_refuses_runs_on_other_layouts(tmp_
 
 
 def test_perception_gap_takes_candidates_only_with_a_proposal_model(tmp_path: Path, capsys):
-    argv = ["experiment", "perception-gap", "--candidates", "4", "2", "1", "1", "--out", str(tmp_path / "gap")]
+    argv = ["experiment", "perception-gap", "--candidates", "4", "2", "1", "1"]
+    argv += ["--out", str(tmp_path / "gap")]
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert "--candidates" in err and "with --proposals" in err and len(err.strip().splitlines()) == 1
