@@ -51,7 +51,7 @@ from scenegen.policy.failures import attempt_features
 from scenegen.store.batch import atomic_write
 
 GRID = PlanGrid(metres=0.005, degrees=10.0)  # candidates closer than this are one attempt
-# Issue 63's labels, sized to its 12 CPU-hour budget over LABEL_SETS' 1,546 layouts (measured under
+# Issue 63's labels, sized to its 12 CPU-hour budget over LABEL_SETS' 1,456 layouts (measured under
 # dt5, docs/policy.md): a top grasp about 8 simulated seconds, a side grasp 16, a push 9, a pull 23, at
 # about 0.14 CPU-s a simulated second; the follow-ups run only where no first grasp lifted the target.
 SAMPLER = SamplerConfig(top=6, side=2, push=1, pull=1)
