@@ -1,7 +1,7 @@
 """What a robot sees of its target in one RGB-D frame with the target's mask (the simulator's
 instance mask in the oracle setting, the retrieval head's prediction otherwise).
 
-``target_points`` back-projects the masked depth pixels into the world frame through the camera's
+``masked_points`` back-projects the masked depth pixels into the world frame through the camera's
 intrinsics and pose (depth is along the optical axis, in metres; images top row first, as the
 environment returns them); ``estimate_target`` summarises the points as a grasp planner needs them:
 centroid, top and bottom heights, and the footprint's principal axis (yaw) and extents. Everything
@@ -27,18 +27,10 @@ SENSOR_REACH = 0.2  # m (xy) from the points' median beyond which a sensed point
 SENSOR_RANGE = (2.0, 98.0)  # percentiles of the footprint's spread taken as its extent
 
 
-def target_points(depth: np.ndarray, seg: np.ndarray, target_id: int, cam: Camera) -> np.ndarray:
-    """World points (N, 3) of the pixels whose instance id is ``target_id`` and that have depth.
-
-    ``depth`` (H, W) metres, ``seg`` (H, W) instance ids, both top row first; ``cam`` the camera
-    they came from, its ``width`` and ``height`` those of the frame."""
-    return masked_points(depth, np.squeeze(seg) == target_id, cam)
-
-
 def masked_points(depth: np.ndarray, mask: np.ndarray, cam: Camera, robust: bool = False) -> np.ndarray:
-    """World points (N, 3) of the pixels of ``mask`` (H, W) bool that have depth (see
-    :func:`target_points`); ``robust`` (a sensor's depth): the mask eroded by ``SENSOR_ERODE`` px
-    first, where enough pixels remain."""
+    """World points (N, 3) of the pixels of ``mask`` (H, W) bool that have depth (metres along the
+    optical axis, top row first; ``cam`` the camera they came from). ``robust`` (a sensor's depth):
+    the mask eroded by ``SENSOR_ERODE`` px first, where enough pixels remain."""
     depth, mask = np.squeeze(depth), np.squeeze(mask)
     if robust and SENSOR_ERODE > 0:
         import cv2
