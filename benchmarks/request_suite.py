@@ -5,7 +5,11 @@ and seed, in this process one after the other.
 
     .venv/bin/python benchmarks/request_suite.py [--half tuning] [--count 30] [--scenes 3] [--cap 300]
         [--proposers diffusion procedural targeted] [--recipe pipelines/demo.yaml] [--limit N]
-        [--also RECIPE ...]
+        [--also RECIPE ...] [--list]
+
+Halves (scenegen/experiment/request_suite.py HALVES): ``tuning`` and ``heldout`` draw "retrieve"
+requests (issues 46, 54), ``tuning-v4`` and ``heldout-v4`` every task (issue 64). ``--list`` prints a
+half's requests and asks nothing.
 
 The recipe (default the demo recipe, its realism check on) gives every proposer its settings; the
 procedural and targeted proposers take the settings they share with it. ``--also``: more recipes
@@ -17,8 +21,8 @@ and CPU-s per accepted scene (None when none), the rejection labels, filled (all
 not, and a refusal (the recipe refused the request as impossible before any try, with its reason).
 Per proposer: median and 90th percentile of tries and CPU-s per accepted scene over the requests
 (a request left unfilled counts its tries over max(accepted, 1), so an empty one is not dropped),
-and how many were filled and refused. The held-out half is for the final report only: it runs with
---half heldout --final, never to choose a setting. CPU is process + children user + system time,
+and how many were filled and refused. A held-out half is for the final report only: it runs with
+--final, never to choose a setting. CPU is process + children user + system time,
 BLAS and OpenMP at one thread. Prints a table, saves JSON; each row is also appended to
 JSON's ``.rows.jsonl`` as it is measured, and a rerun of the same command asks only what is missing.
 """
@@ -44,7 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from scenegen.core.files import load_rows  # noqa: E402
-from scenegen.experiment.request_suite import Request, suite  # noqa: E402
+from scenegen.experiment.request_suite import HALVES, Request, suite  # noqa: E402
 from scenegen.experiment.transfer_sources import cpu_seconds  # noqa: E402
 from scenegen.runner.config import ConfigError, load_pipeline  # noqa: E402
 from scenegen.runner.pipeline import run_batch  # noqa: E402
@@ -155,8 +159,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--half", choices=("tuning", "heldout"), default="tuning")
-    parser.add_argument("--final", action="store_true", help="required with --half heldout: the final report")
+    parser.add_argument("--half", choices=tuple(HALVES), default="tuning")
+    parser.add_argument("--final", action="store_true", help="required with a held-out half: the report")
+    parser.add_argument("--list", action="store_true", help="print the half's requests; ask nothing")
     parser.add_argument("--count", type=int, default=30, help="requests in the half (default 30)")
     parser.add_argument("--limit", type=int, help="ask only the first N requests (a quick look)")
     parser.add_argument("--scenes", type=int, default=3, help="scenes asked per request (default 3)")
@@ -170,12 +175,16 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="default benchmarks/results/request_suite_HALF.json")
     args = parser.parse_args()
-    if args.half == "heldout" and not args.final:
-        parser.error("--half heldout is run once, for the final report: add --final")
+    requests = suite(load_rows(args.reference, "train"), args.half, args.count)[: args.limit]
+    if args.list:
+        for number, request in enumerate(requests):
+            print(f"{number + 1:3d}. {request.text}  (pose {request.pose_name} jittered)")
+        return
+    if args.half.startswith("heldout") and not args.final:
+        parser.error(f"--half {args.half} is run once, for the final report: add --final")
     import torch
 
     torch.set_num_threads(1)
-    requests = suite(load_rows(args.reference, "train"), args.half, args.count)[: args.limit]
     target = args.json or ROOT / "benchmarks" / "results" / f"request_suite_{args.half}.json"
     target.parent.mkdir(parents=True, exist_ok=True)
     rows_file = target.with_suffix(".rows.jsonl")  # measured rows as they come: a rerun resumes
