@@ -3,10 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
 from scenegen.cli.common import add_backend_arguments, add_sensor_argument, backend_from, fail
+
+TRIES_PER_SCENE = 50  # the default try cap: this many tries (repairs included) per scene asked for
+
+
+def request_folder(text: str) -> str:
+    """The folder a request's batch goes to by default: its words, lower case, joined by ``_``
+    (``"retrieve the mug, not clutter"`` -> ``retrieve_the_mug_not_clutter``), at most 80 characters."""
+    return re.sub(r"[^a-z0-9]+", "_", text.lower()).strip("_")[:80].rstrip("_") or "request"
 
 
 def add_commands(sub) -> None:
@@ -21,12 +30,16 @@ def add_commands(sub) -> None:
     gen.add_argument("--seed", type=int, help="batch seed (overrides the recipe's seed)")
     gen.add_argument("--max-proposals", type=int, help="give up after this many proposals (default 40 x n)")
     gen.add_argument(
-        "--max-tries", type=int, help="give up after this many tries, repairs included (default: no cap)"
+        "--max-tries",
+        type=int,
+        help="give up after this many tries: every candidate checked, repairs included (default: the "
+        f"recipe's max_tries, else {TRIES_PER_SCENE} x n)",
     )
     gen.add_argument(
         "--out",
         type=Path,
-        help="output directory (default runs/<name>); the same command on a killed batch resumes it",
+        help="output directory (default runs/<name>, or runs/<name>/<the request's words> with --request); "
+        "the same command on a killed batch resumes it",
     )
     gen.add_argument(
         "--request",
@@ -92,6 +105,9 @@ def generate(args: argparse.Namespace) -> int:
     try:
         backend = backend_from(args)
         config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
+        if config.max_tries is None:
+            overrides["max_tries"] = TRIES_PER_SCENE * config.n
+            config = load_pipeline(args.pipeline, overrides, request=args.request, proposer=args.proposer)
     except (ConfigError, CatalogError, BackendError) as exc:
         return fail(str(exc))
     if config.proposer.kind == "diffusion":
@@ -102,12 +118,14 @@ def generate(args: argparse.Namespace) -> int:
         except ValueError as exc:
             return fail(str(exc))
     out = args.out or Path("runs") / config.name
+    if args.out is None and args.request:
+        out = out / request_folder(args.request)
     if args.check:
         tags = ", ".join(f"{t}={v}" for t, v in config.condition.tags.items() if v != "unspecified") or "none"
         print(
             f"{args.pipeline}: valid. {config.n} scenes of {config.condition.task} {config.condition.target} "
             f"(tags: {tags}) by the {config.proposer.kind} proposer, seed {config.seed}, at most "
-            f"{config.proposal_cap} proposals, render {'on' if config.render else 'off'} -> {out}"
+            f"{config.max_tries} tries, render {'on' if config.render else 'off'} -> {out}"
         )
         return 0
     if config.render:
@@ -126,36 +144,40 @@ def generate(args: argparse.Namespace) -> int:
             summary = run_batch(config, out, workers=args.workers, progress=not args.quiet, backend=backend)
     except (StoreError, BackendError) as exc:
         return fail(str(exc))
+    report_batch(summary, config, out)
+    return 0 if summary.accepted >= config.n else 1
+
+
+def report_batch(summary, config, out: Path) -> None:
+    """What ``generate`` prints at the end: scenes of tries, rejections, stage seconds; on stderr the
+    cap that stopped a short batch, and the realism hint wherever ``unrealistic`` leads the
+    rejections."""
     rejected = sum(summary.rejections.values())
-    print(
-        f"{summary.accepted} scenes accepted of {summary.proposals} proposals "
-        f"in {summary.wall:.1f} s -> {out}"
-    )
+    tries = summary.proposals  # every candidate checked: accepted plus every logged rejection
+    print(f"{summary.accepted} scenes accepted of {tries} tries in {summary.wall:.1f} s -> {out}")
     if rejected:
         print("rejections: " + ", ".join(f"{k} {v}" for k, v in summary.rejections.most_common()))
     print("stage seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in summary.seconds.items()))
     if summary.accepted < config.n:
-        capped = config.max_tries is not None and summary.proposals >= config.max_tries
+        capped = config.max_tries is not None and tries >= config.max_tries
         cap = (
-            f"try cap ({config.max_tries}); raise --max-tries"
+            f"try cap ({config.max_tries} tries); raise --max-tries"
             if capped
-            else f"proposal cap ({config.proposal_cap}); raise --max-proposals"
+            else f"proposal cap ({config.proposal_cap} first tries); raise --max-proposals"
         )
         print(
-            f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted before the "
-            f"{cap} or relax the recipe",
+            f"scenegen: warning: only {summary.accepted} of {config.n} scenes accepted in {tries} tries, "
+            f"stopped by the {cap} or relax the request",
             file=sys.stderr,
         )
-        unrealistic = summary.rejections.get("unrealistic", 0)
-        if rejected and unrealistic * 2 >= rejected:
-            print(
-                f"scenegen: {unrealistic} of {rejected} rejections are unrealistic: the scenes asked for lie "
-                "far from every reference layout (e.g. a combination the reference never shows); lower "
-                "the recipe's realism.min_score or leave realism out to get them",
-                file=sys.stderr,
-            )
-        return 1
-    return 0
+    if rejected and summary.rejections.most_common(1)[0][0] == "unrealistic":
+        print(
+            f"scenegen: {summary.rejections['unrealistic']} of {rejected} rejections are unrealistic, the "
+            "most common: the scenes asked for lie far from every reference layout (e.g. a combination "
+            "the reference never shows); lower the recipe's realism.min_score or leave realism out to "
+            "get them",
+            file=sys.stderr,
+        )
 
 
 def show_batch(args: argparse.Namespace) -> int:
