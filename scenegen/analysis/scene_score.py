@@ -14,9 +14,23 @@ from pathlib import Path
 
 import numpy as np
 
-from scenegen.analysis.realism import feature_categories, feature_matrix, load_rows, record_row
+from scenegen.analysis.realism import feature_categories, feature_matrix, feature_names, load_rows, record_row
 
 _KNN_CHUNK = 512  # query rows per distance block: 512 x 8,000 float64 is 33 MB
+
+# The layout features each rare tag changes (analysis/realism.py layout_features). A composition of
+# tags the reference never holds is judged per tag (:func:`composition_scores`): each tag against the
+# reference layouts that hold it, on every feature but those the composition's other tags change.
+TAG_FEATURES: dict[str, tuple[str, ...]] = {
+    "near_edge": ("target_x", "target_y"),
+    "under_overhang": ("target_x", "target_y", "target_height", "has_shelf"),
+    "toppled": ("target_tilt", "target_height"),
+    "occluded": ("target_nn_distance", "pair_distance_min"),
+    "clutter": ("n_objects", "target_nn_distance", "pair_distance_min", "pair_distance_mean"),
+    "stacked": ("target_height", "support_stacked", "support_table"),
+    "low_light": ("ambient", "light_total"),
+    "on_floor": ("target_x", "target_y", "target_height", "support_floor", "support_table", "mean_abs_y"),
+}
 
 
 def _knn_distance(queries: np.ndarray, reference: np.ndarray, k: int, exclude_self: bool) -> np.ndarray:
@@ -57,28 +71,39 @@ class SceneScorer:
     reference_knn: np.ndarray
     k: int
     categories: tuple[str, ...]
+    columns: tuple[int, ...] | None = None  # the features scored (indices of feature_names); None: all
 
     @classmethod
-    def from_rows(cls, rows: Sequence[dict], k: int = 5, categories: Sequence[str] | None = None):
-        """A scorer from reference layout rows (reference Parquet rows, e.g. :func:`load_rows`)."""
+    def from_rows(
+        cls,
+        rows: Sequence[dict],
+        k: int = 5,
+        categories: Sequence[str] | None = None,
+        columns: Sequence[int] | None = None,
+    ):
+        """A scorer from reference layout rows (reference Parquet rows, e.g. :func:`load_rows`), on
+        the features ``columns`` (default all)."""
         categories = feature_categories() if categories is None else tuple(categories)
+        columns = None if columns is None else tuple(columns)
         if k < 1:
             raise ValueError(f"k={k}: the score needs k >= 1 neighbours")
         if len(rows) < k + 1:
             raise ValueError(f"{len(rows)} reference rows: k={k} needs at least {k + 1}")
         x = feature_matrix(rows, categories)
+        x = x if columns is None else x[:, columns]
         if not np.isfinite(x).all():
             raise ValueError("reference rows have NaN or infinite features")
         mean, std = x.mean(axis=0), x.std(axis=0)
         scale = np.where(std > 1e-12, std, 1.0)
         z = (x - mean) / scale
         knn = np.sort(_knn_distance(z, z, k, exclude_self=True))
-        return cls(mean=mean, scale=scale, reference=z, reference_knn=knn, k=k, categories=categories)
+        return cls(mean, scale, z, knn, k, categories, columns)
 
     def knn_distances(self, rows: Sequence[dict]) -> np.ndarray:
         """(M,) distance of each layout to its k-th nearest reference layout (standardized units)."""
-        z = (feature_matrix(rows, self.categories) - self.mean) / self.scale
-        return _knn_distance(z, self.reference, self.k, exclude_self=False)
+        x = feature_matrix(rows, self.categories)
+        x = x if self.columns is None else x[:, self.columns]
+        return _knn_distance((x - self.mean) / self.scale, self.reference, self.k, exclude_self=False)
 
     def scores(self, rows: Sequence[dict]) -> np.ndarray:
         """(M,) typicality of each layout, in [0, 1]; see the class docstring."""
@@ -184,3 +209,79 @@ def placement_row(target: str, objects, furniture, lighting) -> dict:
         "ambient": float(np.mean(lighting.ambient)),
         "lights": [{"colour": list(light.colour), "intensity": light.intensity} for light in lighting.lights],
     }
+
+
+# ---------------------------------------------------------------- compositions the reference lacks
+
+_TRAIN_ROWS: dict[str, list[dict]] = {}
+_TAG_SCORERS: dict[tuple, tuple[SceneScorer, int]] = {}
+
+
+def _train_rows(reference: str) -> list[dict]:
+    from scenegen.paths import PROJECT_ROOT
+
+    if reference not in _TRAIN_ROWS:
+        path = Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
+        _TRAIN_ROWS[reference] = load_rows(path, "train")
+    return _TRAIN_ROWS[reference]
+
+
+def composition_layouts(rows: Sequence[dict], composition: Sequence[str]) -> int:
+    """How many of ``rows`` hold every tag of ``composition``."""
+    return sum(all(row.get(f"tag_{tag}") for tag in composition) for row in rows)
+
+
+def tag_columns(
+    tag: str, composition: Sequence[str], categories: Sequence[str] | None = None
+) -> tuple[int, ...]:
+    """The features ``tag`` is judged on within ``composition``: all but those the composition's
+    other tags change (``TAG_FEATURES``)."""
+    names = feature_names(categories)
+    changed = {f for other in composition if other != tag for f in TAG_FEATURES[other]}
+    return tuple(i for i, name in enumerate(names) if name not in changed)
+
+
+@dataclass(frozen=True)
+class CompositionScores:
+    """A composition's per-tag judgement: the reference layouts holding the whole composition
+    (``layouts``, fewer than k), and per tag its score against the layouts holding it
+    (``scores``) and their number (``tag_layouts``). ``score``: the lowest."""
+
+    composition: tuple[str, ...]
+    layouts: int
+    scores: dict[str, float]
+    tag_layouts: dict[str, int]
+
+    @property
+    def score(self) -> float:
+        return min(self.scores.values())
+
+    def detail(self) -> str:
+        judged = ", ".join(f"{t} {self.scores[t]:.3f} of {self.tag_layouts[t]}" for t in self.composition)
+        return (
+            f"composition {'+'.join(self.composition)}: {self.layouts} reference layouts, too few to score; "
+            f"judged per tag against its own layouts on the features the others leave: {judged}"
+        )
+
+
+def composition_scores(
+    reference: str, k: int, composition: Sequence[str], row: dict
+) -> CompositionScores | None:
+    """The per-tag judgement of a layout ``row`` holding the rare tags ``composition`` (at least two),
+    or None when the reference's train split holds the composition in k layouts or more (the whole
+    reference's score judges it, as before). Each tag's scorer is built once per process."""
+    composition = tuple(composition)
+    rows = _train_rows(reference)
+    layouts = composition_layouts(rows, composition)
+    if len(composition) < 2 or layouts >= k:
+        return None
+    scores, counts = {}, {}
+    for tag in composition:
+        columns = tag_columns(tag, composition)
+        key = (reference, k, tag, columns)
+        if key not in _TAG_SCORERS:
+            own = [r for r in rows if r.get(f"tag_{tag}")]
+            _TAG_SCORERS[key] = (SceneScorer.from_rows(own, k, columns=columns), len(own))
+        scorer, counts[tag] = _TAG_SCORERS[key]
+        scores[tag] = round(scorer.score(row), 6)
+    return CompositionScores(composition, layouts, scores, counts)

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 import fcl
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_serializer
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
@@ -41,6 +41,18 @@ class CheckSettings(BaseModel):
     robot_clearance: float = 0.03  # minimum distance between objects/furniture and the robot
     reach_min: float = layout.REACH[0]  # grasp point distance from the shoulder (robot0_link1), m
     reach_max: float = layout.REACH[1]  # Panda: 0.855 m to the flange + hand; an envelope, not IK
+    # Furniture stands wholly on the table (``furniture_overhang`` beyond this rejects): off by default,
+    # so recipes made before the rule keep their digests and figures; the default recipe turns it on.
+    furniture_on_table: bool = False
+    furniture_tolerance: float = 0.001
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler):
+        data = handler(self)  # a recipe without the rule dumps and hashes as before it existed
+        if not data.get("furniture_on_table"):
+            data.pop("furniture_on_table", None)
+            data.pop("furniture_tolerance", None)
+        return data
 
 
 def _result(check: str, passed: bool, label: str, value: float, threshold: float, detail: str = ""):
@@ -64,6 +76,19 @@ def check_workspace(proposal: SceneProposal, catalog: Catalog) -> CheckResult:
         if margin < worst:
             worst, who = margin, obj.name
     return _result("workspace", worst >= 0.0, "out_of_workspace", worst, 0.0, who)
+
+
+def check_furniture(proposal: SceneProposal, settings: CheckSettings) -> CheckResult:
+    """Every furniture piece stands wholly on the table (value: how far its farthest box corner lies
+    beyond the table's edges, m; ``layout.furniture_overhang``)."""
+    worst, who = -math.inf, ""
+    for piece in proposal.furniture:
+        beyond = layout.furniture_overhang(piece)
+        if beyond > worst:
+            worst, who = beyond, piece.name
+    worst = worst if proposal.furniture else 0.0
+    limit = settings.furniture_tolerance
+    return _result("furniture_support", worst <= limit, "furniture_overhang", worst, limit, who)
 
 
 def check_support(proposal: SceneProposal, catalog: Catalog, settings: CheckSettings) -> CheckResult:
@@ -235,6 +260,8 @@ def run_checks(
 ) -> tuple[list[CheckResult], bool]:
     """All geometric checks, cheapest first; stops at the first failure. Returns (results, passed)."""
     results = [check_workspace(proposal, catalog)]
+    if results[-1].passed and settings.furniture_on_table:
+        results.append(check_furniture(proposal, settings))
     if results[-1].passed:
         results.append(check_support(proposal, catalog, settings))
     if not results[-1].passed:

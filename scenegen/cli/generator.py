@@ -34,6 +34,19 @@ def add_commands(sub) -> None:
         help="condition on the layout's spread, in this many equal-count bins of its mean pair distance "
         "(default 0: not; a recipe then draws it with proposer.draw_spread)",
     )
+    tr.add_argument(
+        "--rare-share", type=float, help="share of each batch drawn by rare-tag oversampling (default 0.25)"
+    )
+    tr.add_argument(
+        "--tag-loss-weight",
+        type=float,
+        help="extra loss weight of a layout holding a rare tag: it counts 1 + this (default 0: plain MSE)",
+    )
+    tr.add_argument(
+        "--light-loss-weight",
+        type=float,
+        help="loss weight of the scene token's lighting numbers, ambient and light slots (default 1)",
+    )
     tr.add_argument("--d-model", type=int, help="transformer width (default 128)")
     tr.add_argument("--layers", type=int, help="transformer layers (default 4)")
     tr.add_argument("--seed", type=int, help="seed (default 0)")
@@ -85,6 +98,9 @@ def train(args: argparse.Namespace) -> int:
         "batch_size": args.batch_size,
         "lr_decay": args.lr_decay,
         "spread_bins": args.spread_bins,
+        "rare_share": args.rare_share,
+        "tag_loss_weight": args.tag_loss_weight,
+        "light_loss_weight": args.light_loss_weight,
         "d_model": args.d_model,
         "layers": args.layers,
         "seed": args.seed,

@@ -285,3 +285,32 @@ def workspace_region(proposal, name: str) -> Surface:
     """The region object ``name``'s centre must lie over: the floor strip when its stack stands on the
     floor, else the table (the workspace check's, and where a projection puts it back)."""
     return FLOOR if stack_ground(proposal, name) == "floor" else support_surfaces(())["table"]
+
+
+def furniture_overhang(piece: FurniturePlacement) -> float:
+    """How far (m) the farthest corner of a furniture piece's boxes lies beyond the table top's edges
+    (at most 0 when the piece stands wholly on the table): the furniture-support check's value."""
+    corners = np.array([[sx, sy] for sx in (-1, 1) for sy in (-1, 1)])
+    worst = -math.inf
+    for centre, rot, half in furniture_boxes(piece):
+        xy = centre[:2] + (corners * half[:2]) @ rot[:2, :2].T
+        beyond = np.abs(xy) - np.array(TABLE_SIZE[:2]) / 2
+        worst = max(worst, float(beyond.max()))
+    return worst
+
+
+# How far the floor strip's table-side edge lies beyond the table's (+y) edge: a target whose centre is
+# over the strip has its centre at least this far from anything standing wholly on the table.
+FLOOR_GAP = FLOOR.center[1] - FLOOR.half[1] - TABLE_SIZE[1] / 2
+
+
+def floor_cover_bound(points: np.ndarray, yaws: int = 72) -> float:
+    """The largest share of an object's points (N, 3; about its centre, in a resting pose) that any of
+    ``yaws`` yaws brings ``FLOOR_GAP`` or more toward the table: with its centre over the floor strip,
+    no more of it can lie over the table, so a furniture board standing wholly on the table covers at
+    most this share (an upper bound of the under_overhang predicate's value for a target on the floor;
+    the grid of yaws is checked against a finer one in tests/propose/test_refusals.py)."""
+    angles = np.linspace(0.0, 2 * math.pi, yaws, endpoint=False)
+    # y of each point after a yaw by a: x sin a + y cos a
+    y = np.outer(np.sin(angles), points[:, 0]) + np.outer(np.cos(angles), points[:, 1])
+    return float((y <= -FLOOR_GAP).mean(axis=1).max())

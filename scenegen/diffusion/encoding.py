@@ -157,6 +157,7 @@ class SceneEncoding:
         self.target_col = self.yaw_cols.stop
         self.object_width = self.target_col + 1
         start = 3 * len(FURNITURE_KINDS) + 1 + LIGHT_WIDTH * light_slots
+        self.light_cols = slice(3 * len(FURNITURE_KINDS), start)  # the ambient level and the light slots
         self.count_cols = slice(start, start + slots)
         self.scene_width = self.count_cols.stop
 
@@ -242,12 +243,11 @@ class SceneEncoding:
         the ambient level and the light slots."""
         objects = np.zeros((self.slots, self.object_width), bool)
         scene = np.zeros(self.scene_width, bool)
-        lights_start = 3 * len(FURNITURE_KINDS)
         for part in parts:
             if part == "furniture":
-                scene[:lights_start] = True
+                scene[: self.light_cols.start] = True
             elif part == "lights":
-                scene[lights_start : self.count_cols.start] = True
+                scene[self.light_cols] = True
             else:
                 objects[slot_of[part], 1 : self.target_col] = True
         return objects, scene

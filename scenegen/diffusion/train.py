@@ -50,6 +50,10 @@ class TrainSettings(BaseModel):
     weight_decay: float = Field(1e-4, ge=0)
     ema_decay: float = Field(0.999, ge=0, lt=1)
     rare_share: float = Field(0.25, ge=0, le=1)  # share of each batch drawn by rare oversampling
+    # the loss of a layout holding a rare tag counts 1 + tag_loss_weight times (0: plain MSE)
+    tag_loss_weight: float = Field(0.0, ge=0)
+    # the scene token's lighting numbers (ambient, light slots) count this many times (1: plain MSE)
+    light_loss_weight: float = Field(1.0, gt=0)
     p_null: float = Field(0.1, ge=0, le=1)
     p_field: float = Field(0.1, ge=0, le=1)
     p_unspecified: float = Field(0.5, ge=0, le=1)
@@ -162,6 +166,28 @@ def learning_rate(settings: TrainSettings, step: int) -> float:
     if step < start or decay == 0:
         return settings.lr
     return settings.lr * 0.5 * (1.0 + math.cos(math.pi * (step - start) / decay))
+
+
+def loss_weights(data, encoding: SceneEncoding, settings: TrainSettings) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per layout (N,) and per scene-token column (scene_width,), the loss's weights: a layout holding
+    a rare tag counts 1 + ``tag_loss_weight``, the lighting columns ``light_loss_weight``."""
+    rows = 1.0 + settings.tag_loss_weight * data.tags.any(dim=1).float()
+    columns = torch.ones(encoding.scene_width)
+    columns[encoding.light_cols] = settings.light_loss_weight
+    return rows, columns
+
+
+def weighted_loss(
+    err_objects: torch.Tensor, err_scene: torch.Tensor, rows: torch.Tensor, columns: torch.Tensor
+) -> torch.Tensor:
+    """The weighted mean of the squared errors (objects (B, slots, width), scene (B, scene_width)):
+    each layout's numbers weighted by ``rows`` (B,), the scene token's by ``columns`` too. With every
+    weight 1 it is the plain MSE over all numbers, to the bit."""
+    if bool((rows == 1).all()) and bool((columns == 1).all()):
+        return torch.cat([err_objects.flatten(1), err_scene], dim=1).pow(2).mean()
+    squared = err_objects.flatten(1).pow(2).sum(1) + (err_scene.pow(2) * columns).sum(1)
+    count = err_objects[0].numel() + columns.sum()
+    return (rows * squared).sum() / (rows.sum() * count)
 
 
 def _data_predicate_version(path: Path) -> str:
@@ -291,6 +317,7 @@ def train(
 
     scheduler = ddpm_scheduler(settings)
     alphas = scheduler.alphas_cumprod
+    weights, columns = loss_weights(data, encoding, settings)
     start, cpu0 = config["step"], time.process_time()
     end = settings.steps if stop_after is None else min(settings.steps, start + stop_after)
     bar = tqdm(range(start, end), initial=start, total=settings.steps, desc="train", disable=not progress)
@@ -319,7 +346,7 @@ def train(
         v_o, v_s = model(xt_o, xt_s, t, c)  # v target: sqrt(a) noise - sqrt(1 - a) x_0
         target_o = a.sqrt()[:, None, None] * noise_o - (1 - a).sqrt()[:, None, None] * x_o
         target_s = a.sqrt()[:, None] * noise_s - (1 - a).sqrt()[:, None] * x_s
-        loss = torch.cat([(v_o - target_o).flatten(1), (v_s - target_s)], dim=1).pow(2).mean()
+        loss = weighted_loss(v_o - target_o, v_s - target_s, weights[rows].to(on), columns.to(on))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         for group in optimizer.param_groups:

@@ -162,6 +162,7 @@ class SceneEnv(ManipulationEnv):
             scene.lighting,
             scene.cameras,
             base=self._robot_spec.copy(),
+            floor=scene.floor,
         )
         self.physics.apply(spec, catalog, scene.objects)
         self.sim = MjSim(spec.compile())

@@ -53,6 +53,7 @@ class EnvScene:
     tags: dict[str, bool] = field(default_factory=dict)
     path: Path | None = None  # the scene directory of a stored scene
     catalogs: tuple[str, ...] = ()  # the user catalogs its assets come from (scene.json provenance)
+    floor: str = "plane"  # what the floor was when it settled (sim/world.py FLOORS; scene.json's)
 
     @property
     def segmentation(self) -> dict[str, int]:
@@ -93,6 +94,7 @@ def stored_scene(scene_dir: Path, source: str | None = None) -> EnvScene:
         tags={name: value.holds for name, value in record.tags.items()},
         path=scene_dir,
         catalogs=catalogs,
+        floor=record.contact_options.get("floor", "plane"),
     )
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, field_validator, model_serializer
 
 from scenegen.assets.catalog import Asset
+from scenegen.core import layout
 from scenegen.schema.condition import Condition
 from scenegen.schema.scene import SceneProposal
 
@@ -47,8 +48,12 @@ def non_upright(asset: Asset) -> list[int]:
     return [i for i, p in enumerate(asset.resting_poses) if not p.upright]
 
 
-def impossible_request(condition: Condition, catalog) -> str | None:
-    """Why no scene of this catalog can meet the request whatever the proposer, or None."""
+def impossible_request(
+    condition: Condition, catalog, overhang_cover: float | None = None, furniture_on_table: bool = False
+) -> str | None:
+    """Why no scene of this catalog can meet the request whatever the proposer, or None.
+    ``overhang_cover``: the under_overhang predicate's threshold (the recipe's tags); with
+    ``furniture_on_table`` (the recipe's checks) furniture stands wholly on the table."""
     if "toppled" in condition.required() and not any(
         non_upright(a) for a in catalog.of_category(condition.target)
     ):
@@ -62,7 +67,33 @@ def impossible_request(condition: Condition, catalog) -> str | None:
             "table top (its lowest point within 1 cm of it), on_floor only for one 0.3 m or more below "
             "it, so no scene can hold both; ask for one of them"
         )
+    if (
+        furniture_on_table
+        and overhang_cover is not None
+        and {"on_floor", "under_overhang"} <= set(condition.required())
+    ):
+        reach = floor_cover_reach(catalog, condition.target)
+        if reach < overhang_cover:
+            return (
+                f"required tags on_floor and under_overhang: a {condition.target} on the floor lies "
+                f"{layout.FLOOR_GAP * 100:.0f}+ cm past the table, where furniture stands, so a board covers "
+                f"at most {reach:.0%} of it (needs {overhang_cover:.0%}); ask for one"
+            )
     return None
+
+
+def floor_cover_reach(catalog, category: str) -> float:
+    """The most of any ``category`` asset, in any resting pose and yaw, that furniture standing wholly
+    on the table can cover while the asset lies on the floor strip (``layout.floor_cover_bound``)."""
+    from scenegen.assets.catalog import convex_part_vertices
+    from scenegen.core.rotations import quat_to_matrix
+
+    best = 0.0
+    for asset in catalog.of_category(category):
+        points = np.concatenate(convex_part_vertices(catalog, asset.name))
+        for pose in asset.resting_poses:
+            best = max(best, layout.floor_cover_bound(points @ quat_to_matrix(pose.quat).T))
+    return best
 
 
 def proposal_rng(seed: int, index: int) -> np.random.Generator:

@@ -41,6 +41,17 @@ class RealismFilter(BaseModel):
     min_score: float = Field(0.01, ge=0.0, le=1.0)
     k: int = Field(5, ge=1, le=50)
     reference: str = "assets/reference/reference.parquet"  # relative paths: to the project root
+    # ``whole``: every scene scored against the whole reference. ``per_tag``: a scene whose rare tags
+    # the reference holds together in fewer than k layouts is judged per tag, each against the layouts
+    # holding it (analysis/scene_score.py composition_scores); every other scene as ``whole``.
+    compositions: Literal["whole", "per_tag"] = "whole"
+
+    @model_serializer(mode="wrap")
+    def _omit_whole(self, handler):
+        data = handler(self)  # a recipe without the key dumps and hashes as before it existed
+        if data.get("compositions") == "whole":
+            del data["compositions"]
+        return data
 
 
 class ConfigError(ValueError):
@@ -55,9 +66,11 @@ class PipelineConfig(BaseModel):
     ``condition`` (see :class:`Condition`); ``proposer``
     (``kind: procedural`` or ``kind: targeted`` and its settings, cameras included); ``checks``;
     ``settle``; ``tags``; ``realism`` (the per-scene ``unrealistic`` filter); ``render``;
-    ``robot_mesh_detail`` (the robot's meshes decimated for drawing); ``sensor`` (``exact``, the
-    default: the renderer's depth only; ``active_stereo`` or ``structured_light``: each camera's depth
-    as that sensor returns it is stored too, ``<cam>_depth_<sensor>.png``; docs/sensor.md).
+    ``robot_mesh_detail`` (the robot's meshes decimated for drawing); ``floor`` (``plane``, the
+    default, or ``box``: what objects on the floor rest on, sim/world.py ``FLOORS``); ``sensor``
+    (``exact``, the default: the renderer's depth only; ``active_stereo`` or ``structured_light``: each
+    camera's depth as that sensor returns it is stored too, ``<cam>_depth_<sensor>.png``;
+    docs/sensor.md).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -85,11 +98,15 @@ class PipelineConfig(BaseModel):
     catalogs: tuple[str, ...] = ()
     # give up after this many tries: proposals and their repairs (None: only max_proposals caps)
     max_tries: int | None = Field(None, ge=1)
+    # what objects on the floor rest on (sim/world.py FLOORS): robosuite's plane, or a box like the table
+    floor: Literal["plane", "box"] = "plane"
 
     @model_validator(mode="after")
     def _reachable_request(self):
         catalog = self.catalog()
-        problem = impossible_request(self.condition, catalog)
+        problem = impossible_request(
+            self.condition, catalog, self.tags.overhang_cover, self.checks.furniture_on_table
+        )
         if problem:
             raise ValueError(f"condition: {problem}")
         allowed = getattr(self.proposer, "assets", None)
@@ -124,6 +141,8 @@ class PipelineConfig(BaseModel):
                 del data[key]
         if data.get("sensor") == "exact":
             del data["sensor"]
+        if data.get("floor") == "plane":
+            del data["floor"]
         if not data.get("catalogs", True):  # and for a recipe of the bundled catalog only
             del data["catalogs"]
         return data

@@ -20,6 +20,7 @@ from scenegen.check.geometry import run_checks
 from scenegen.manifest.derive import SCENE_PACKAGES, package_versions, sensor_entry
 from scenegen.render.offscreen import RENDER_SETTINGS  # settings only: no GL is touched at import
 from scenegen.runner.config import PipelineConfig, RealismFilter, validate_config
+from scenegen.schema.condition import RARE_TAGS
 from scenegen.schema.scene import CheckResult, Rejection, SceneProposal, SceneRecord, SettledObject
 from scenegen.settle.physics import contact_configuration, free_bodies, rotation_angle, settle
 from scenegen.sim import world
@@ -74,7 +75,7 @@ def process_proposal(
 
     clock.start()
     spec = world.build_world(
-        catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras
+        catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras, floor=config.floor
     )
     model = spec.compile()
     qpos0, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
@@ -99,7 +100,7 @@ def process_proposal(
     if checks[-1].passed:  # settled poses and the realism score only for scenes that meet the request
         objects = settled_objects(model, proposal, settled.qpos)
         if config.realism is not None:
-            checks.append(realism_check(proposal, objects, config.realism))
+            checks.append(realism_check(proposal, objects, config.realism, tags))
     clock.stop("tag")
     if not checks[-1].passed:
         out.rejection = Rejection.from_check(proposal.index, checks[-1], proposal.attempt)
@@ -134,7 +135,7 @@ def process_proposal(
         segmentation=segmentation,
         render=render_settings(config),
         contacts=tuple(contacts),
-        contact_options=world.CONTACT_OPTIONS,
+        contact_options=world.contact_options(config.floor),
         checks=tuple(checks),
         settle=settled.stats,
         provenance={
@@ -232,17 +233,28 @@ def settled_objects(model: mujoco.MjModel, proposal: SceneProposal, qpos) -> lis
 
 
 def realism_check(
-    proposal: SceneProposal, objects: list[SettledObject], settings: RealismFilter
+    proposal: SceneProposal, objects: list[SettledObject], settings: RealismFilter, tags: dict | None = None
 ) -> CheckResult:
     """The per-scene realism score of a settled scene against the reference set (``unrealistic`` below
-    ``settings.min_score``; scenegen.analysis.scene_score.SceneScorer)."""
+    ``settings.min_score``; scenegen.analysis.scene_score.SceneScorer). With ``compositions:
+    per_tag``, a scene whose rare ``tags`` the reference holds together in fewer than k layouts is
+    judged per tag (``composition_scores``), and the detail says so."""
     from scenegen.analysis.scene_score import (  # torch: only when the filter is on
+        composition_scores,
         placement_row,
         reference_scorer,
     )
 
     row = placement_row(proposal.target, objects, proposal.furniture, proposal.lighting)
-    score = round(reference_scorer(settings.reference, settings.k).score(row), 6)
+    held = [t for t in RARE_TAGS if tags and t in tags and tags[t].holds]
+    judged = None
+    if settings.compositions == "per_tag":
+        judged = composition_scores(settings.reference, settings.k, held, row)
+    if judged is None:
+        score = round(reference_scorer(settings.reference, settings.k).score(row), 6)
+        detail = f"share of reference layouts at least as far from their {settings.k} nearest neighbours"
+    else:
+        score, detail = judged.score, judged.detail()
     passed = score >= settings.min_score
     return CheckResult(
         stage="tag",
@@ -251,7 +263,7 @@ def realism_check(
         label=None if passed else "unrealistic",
         value=score,
         threshold=settings.min_score,
-        detail=f"share of reference layouts at least as far from their {settings.k} nearest neighbours",
+        detail=detail,
     )
 
 

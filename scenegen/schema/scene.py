@@ -28,6 +28,7 @@ RejectionLabel = Literal[
     "condition_unmet",
     "unrealistic",
     "render_failed",
+    "furniture_overhang",  # a furniture piece not wholly on the table (checks.furniture_on_table)
 ]
 REJECTION_LABELS: tuple[str, ...] = RejectionLabel.__args__  # type: ignore[attr-defined]
 Stage = Literal["propose", "check", "settle", "tag", "render", "store"]

@@ -50,6 +50,37 @@ CONTACT_OPTIONS = {
 # (hidden in renders). Furniture boxes are exact primitives, so one geom serves both.
 VISUAL_GROUP, COLLISION_GROUP = 1, 3
 
+# What objects on the floor rest on. ``plane``: robosuite's floor plane (every scene before issue 64,
+# the reference set's included). ``box``: a box whose top is the floor, as the table is a box, and the
+# plane seen but not touched: on the plane a teaspoon alone still turned at 0.155 rad/s after 2 s, a
+# knife at 0.199 (still_angular is 0.05), where on the table's box the same poses turn at 0-0.02
+# (docs/generator.md). Recorded in scene.json's ``contact_options`` as ``floor`` when ``box``.
+FLOORS = ("plane", "box")
+FLOOR_BOX = "floor_support"
+FLOOR_BOX_HALF = (3.0, 3.0, 0.05)  # m: the plane's extent, 10 cm thick, its top at z = 0
+
+
+def contact_options(floor: str = "plane") -> dict:
+    """``CONTACT_OPTIONS`` as a scene records them: with ``floor`` only when it is not the plane, so
+    a scene made on the plane records exactly what it did before floors had a choice."""
+    return CONTACT_OPTIONS if floor == "plane" else {**CONTACT_OPTIONS, "floor": floor}
+
+
+def _box_floor(spec: mujoco.MjSpec) -> None:
+    """The floor as a box (``FLOORS``): the plane keeps its look and loses its contacts."""
+    plane = spec.geom("floor")
+    plane.contype = plane.conaffinity = 0
+    table = spec.geom("table_collision")
+    spec.worldbody.add_geom(
+        name=FLOOR_BOX,
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        pos=[0, 0, -FLOOR_BOX_HALF[2]],
+        size=FLOOR_BOX_HALF,
+        group=0,  # a collision geom, hidden like the table's
+        friction=list(table.friction),
+        rgba=[0.5, 0.5, 0.5, 1],
+    )
+
 
 def _quiet_robosuite() -> None:
     """Drop robosuite's import-time warnings (private macro file, optional robots, mink IK): they
@@ -136,14 +167,19 @@ def build_world(
     lighting: Lighting | None = None,
     cameras: Sequence[Camera] = (),
     base: mujoco.MjSpec | None = None,
+    floor: str = "plane",
 ) -> mujoco.MjSpec:
     """A spec of the full scene; objects are free bodies named as their placements, at their poses.
 
     ``base``: the robot-and-table world to furnish (default: :func:`robot_spec`, the held robot;
-    it is modified in place). Call :func:`initial_state` on the compiled model for the qpos/ctrl
-    of the held robot at its pose.
+    it is modified in place). ``floor``: what the floor is (``FLOORS``). Call :func:`initial_state`
+    on the compiled model for the qpos/ctrl of the held robot at its pose.
     """
+    if floor not in FLOORS:
+        raise ValueError(f"floor {floor!r}: one of {', '.join(FLOORS)}")
     spec = robot_spec() if base is None else base
+    if floor == "box":
+        _box_floor(spec)
     for piece in furniture:
         _add_furniture(spec, piece)
     # Every catalog mesh is declared, used or not, in catalog order: all scenes of a catalog then share

@@ -208,3 +208,55 @@ def test_a_cuda_run_without_cuda_is_a_one_line_error_before_any_work(tmp_path: P
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--device cuda" in err[0] and "use --device cpu or auto" in err[0]
     assert not out.exists()
+
+
+def test_the_weighted_loss_is_the_plain_mse_at_unit_weights_and_weighs_what_it_names():
+    """Issue 64 point 2: ``tag_loss_weight`` and ``light_loss_weight``. At unit weights the loss is
+    the plain MSE to the bit; an error only in the lighting columns counts light_loss_weight times as
+    much (relative to the same error elsewhere in the scene token); a layout holding a rare tag counts
+    1 + tag_loss_weight times another's."""
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.diffusion.encoding import SceneEncoding
+    from scenegen.diffusion.train import weighted_loss
+
+    encoding = SceneEncoding(load_catalog())
+    g = torch.Generator().manual_seed(0)
+    err_o = torch.randn(4, encoding.slots, encoding.object_width, generator=g)
+    err_s = torch.randn(4, encoding.scene_width, generator=g)
+    ones_r, ones_c = torch.ones(4), torch.ones(encoding.scene_width)
+    plain = torch.cat([err_o.flatten(1), err_s], dim=1).pow(2).mean()
+    assert torch.equal(weighted_loss(err_o, err_s, ones_r, ones_c), plain)
+    columns = ones_c.clone()
+    columns[encoding.light_cols] = 3.0
+    light_only, other_only = torch.zeros_like(err_s), torch.zeros_like(err_s)
+    light_only[:, encoding.light_cols.start] = 1.0
+    other_only[:, encoding.count_cols.start] = 1.0
+    zero_o = torch.zeros_like(err_o)
+    ratio = weighted_loss(zero_o, light_only, ones_r, columns) / weighted_loss(
+        zero_o, other_only, ones_r, columns
+    )
+    assert ratio.item() == pytest.approx(3.0)
+    rows = torch.tensor([1.0, 5.0, 1.0, 1.0])  # the second layout holds a tag, tag_loss_weight 4
+    first, second = torch.zeros_like(err_s), torch.zeros_like(err_s)
+    first[0, 0], second[1, 0] = 1.0, 1.0
+    ratio = weighted_loss(zero_o, second, rows, ones_c) / weighted_loss(zero_o, first, rows, ones_c)
+    assert ratio.item() == pytest.approx(5.0)
+
+
+def test_a_weighted_run_records_its_weights_and_trains(tmp_path: Path):
+    settings = TrainSettings(
+        steps=120,
+        batch_size=64,
+        d_model=32,
+        layers=2,
+        heads=2,
+        checkpoint_every=120,
+        split="heldout",
+        tag_loss_weight=2.0,
+        light_loss_weight=4.0,
+    )
+    config = train(REFERENCE, tmp_path / "weighted", settings, progress=False)
+    saved = json.loads((tmp_path / "weighted" / "config.json").read_text())
+    assert saved["train"]["tag_loss_weight"] == 2.0 and saved["train"]["light_loss_weight"] == 4.0
+    losses = config["losses"]
+    assert np.mean(losses[-10:]) < np.mean(losses[:10])

@@ -23,7 +23,7 @@ REQUEST = "retrieve the mug toppled occluded low_light"
 def proposer_and_config():
     from scenegen.propose.diffusion import DiffusionProposer
 
-    config = load_pipeline("pipelines/demo.yaml", request=REQUEST, overrides={"render": False})
+    config = load_pipeline("pipelines/generator_v2.yaml", request=REQUEST, overrides={"render": False})
     return DiffusionProposer(config.proposer, config.catalog()), config
 
 
@@ -130,7 +130,7 @@ def test_the_sampler_returns_held_values_exactly(proposer_and_config):
 def recipe(
     tmp_path: Path, repairs: int = 3, project: bool = False, tags=("toppled", "occluded", "low_light"), **top
 ) -> Path:
-    raw = yaml.safe_load(Path("pipelines/demo.yaml").read_text())
+    raw = yaml.safe_load(Path("pipelines/generator_v2.yaml").read_text())  # what it was written on
     raw.update(name="repairs", n=3, render=False)
     raw.pop("robot_mesh_detail", None)
     raw["condition"]["target"] = "mug"
