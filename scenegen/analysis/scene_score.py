@@ -214,16 +214,54 @@ def placement_row(target: str, objects, furniture, lighting) -> dict:
 # ---------------------------------------------------------------- compositions the reference lacks
 
 _TRAIN_ROWS: dict[str, list[dict]] = {}
+_TAG_MATRICES: dict[str, np.ndarray] = {}
 _TAG_SCORERS: dict[tuple, tuple[SceneScorer, int]] = {}
 
 
-def _train_rows(reference: str) -> list[dict]:
+def _reference_path(reference: str) -> Path:
     from scenegen.paths import PROJECT_ROOT
 
+    return Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
+
+
+def _train_rows(reference: str) -> list[dict]:
     if reference not in _TRAIN_ROWS:
-        path = Path(reference) if Path(reference).is_absolute() else PROJECT_ROOT / reference
-        _TRAIN_ROWS[reference] = load_rows(path, "train")
+        _TRAIN_ROWS[reference] = load_rows(_reference_path(reference), "train")
     return _TRAIN_ROWS[reference]
+
+
+def _tag_matrix(reference: str) -> np.ndarray:
+    """(N, len(RARE_TAGS)) whether each train layout holds each rare tag: read from the cache beside
+    the scorer's (~1 ms) instead of the rows (~3 s), so a worker reads the rows only to build the
+    scorer of a composition it meets."""
+    from scenegen.schema.condition import RARE_TAGS
+
+    if reference not in _TAG_MATRICES:
+        cache = scorer_cache_path(_reference_path(reference), 0).with_suffix(".tags.npz")
+        try:
+            with np.load(cache, allow_pickle=False) as data:
+                matrix = data["tags"]
+        except (OSError, KeyError, ValueError):
+            rows = _train_rows(reference)
+            matrix = np.array([[bool(r.get(f"tag_{t}")) for t in RARE_TAGS] for r in rows], bool)
+            _save_array(cache, matrix)
+        _TAG_MATRICES[reference] = matrix
+    return _TAG_MATRICES[reference]
+
+
+def _save_array(path: Path, tags: np.ndarray) -> None:
+    """Write the tag cache atomically; one that cannot be written is only a slower next run."""
+    import os
+    import tempfile
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, tags=tags)
+        os.replace(tmp, path)
+    except OSError:
+        pass
 
 
 def composition_layouts(rows: Sequence[dict], composition: Sequence[str]) -> int:
@@ -270,17 +308,21 @@ def composition_scores(
     """The per-tag judgement of a layout ``row`` holding the rare tags ``composition`` (at least two),
     or None when the reference's train split holds the composition in k layouts or more (the whole
     reference's score judges it, as before). Each tag's scorer is built once per process."""
+    from scenegen.schema.condition import RARE_TAGS
+
     composition = tuple(composition)
-    rows = _train_rows(reference)
-    layouts = composition_layouts(rows, composition)
-    if len(composition) < 2 or layouts >= k:
+    if len(composition) < 2:
+        return None
+    held = _tag_matrix(reference)[:, [RARE_TAGS.index(t) for t in composition]]
+    layouts = int(held.all(axis=1).sum())
+    if layouts >= k:
         return None
     scores, counts = {}, {}
     for tag in composition:
         columns = tag_columns(tag, composition)
         key = (reference, k, tag, columns)
         if key not in _TAG_SCORERS:
-            own = [r for r in rows if r.get(f"tag_{tag}")]
+            own = [r for r in _train_rows(reference) if r.get(f"tag_{tag}")]
             _TAG_SCORERS[key] = (SceneScorer.from_rows(own, k, columns=columns), len(own))
         scorer, counts[tag] = _TAG_SCORERS[key]
         scores[tag] = round(scorer.score(row), 6)

@@ -38,8 +38,8 @@ def add_commands(sub) -> None:
     gen.add_argument(
         "--out",
         type=Path,
-        help="output directory (default runs/<name>, or runs/<name>/<the request's words> with --request); "
-        "the same command on a killed batch resumes it",
+        help="output directory (default runs/<name>, or runs/requests/<name>/<the request's words> with "
+        "--request); the same command on a killed batch resumes it",
     )
     gen.add_argument(
         "--request",
@@ -118,8 +118,8 @@ def generate(args: argparse.Namespace) -> int:
         except ValueError as exc:
             return fail(str(exc))
     out = args.out or Path("runs") / config.name
-    if args.out is None and args.request:
-        out = out / request_folder(args.request)
+    if args.out is None and args.request:  # beside the recipe's own batch, never inside it
+        out = Path("runs") / "requests" / config.name / request_folder(args.request)
     if args.check:
         tags = ", ".join(f"{t}={v}" for t, v in config.condition.tags.items() if v != "unspecified") or "none"
         print(

@@ -85,11 +85,14 @@ def ordered_outcomes(
 ) -> Iterator[Outcome]:
     """Outcomes of ``proposals`` in their order, computed by ``workers`` workers of ``backend``
     (``pool``: the workers :func:`start_workers` started for them; stopped at the end)."""
+    threads = _torch_threads(1)  # the proposer shares the cores; its sums as beside workers (repairing.py)
     if backend.kind == "local" and workers <= 1:
-        init_worker(config.model_dump_json(), False, export)
-        yield from map(work, proposals)
+        try:
+            init_worker(config.model_dump_json(), False, export)
+            yield from map(work, proposals)
+        finally:
+            _torch_threads(threads)
         return
-    threads = _torch_threads(1)  # the proposer (this process) shares the cores with the workers
     try:
         initargs = () if pool else (config.model_dump_json(), True, export, shared_state(config))
         with one_blas_thread():

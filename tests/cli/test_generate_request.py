@@ -32,12 +32,12 @@ def test_two_requests_of_one_recipe_land_in_two_folders(tmp_path: Path, monkeypa
         code = main(["generate", str(PROCEDURAL), "--request", request, "--n", "1", "--no-render", "--quiet"])
         out = capsys.readouterr().out
         assert code == 0, out
-        folder = Path("runs") / "procedural" / request_folder(request)
+        folder = Path("runs") / "requests" / "procedural" / request_folder(request)
         assert f"-> {folder}" in out and " tries in " in out and "proposals" not in out
         recipe = yaml.safe_load((folder / "pipeline.yaml").read_text())
         assert recipe["condition"]["target"] == request.split()[2]
         assert recipe["max_tries"] == TRIES_PER_SCENE  # the default cap, recorded with the recipe
-    assert not (tmp_path / "runs" / "procedural" / "scenes").exists()
+    assert not (tmp_path / "runs" / "procedural").exists()  # the recipe's own batch folder is untouched
 
 
 def test_the_default_try_cap_is_stated_and_a_recipes_own_wins(tmp_path: Path, capsys):

@@ -128,9 +128,14 @@ def test_the_sampler_returns_held_values_exactly(proposer_and_config):
 
 
 def recipe(
-    tmp_path: Path, repairs: int = 3, project: bool = False, tags=("toppled", "occluded", "low_light"), **top
+    tmp_path: Path,
+    repairs: int = 3,
+    project: bool = False,
+    tags=("toppled", "occluded", "low_light"),
+    base: str = "generator_v2",  # the recipe these tests were written on
+    **top,
 ) -> Path:
-    raw = yaml.safe_load(Path("pipelines/generator_v2.yaml").read_text())  # what it was written on
+    raw = yaml.safe_load((Path("pipelines") / f"{base}.yaml").read_text())
     raw.update(name="repairs", n=3, render=False)
     raw.pop("robot_mesh_detail", None)
     raw["condition"]["target"] = "mug"
@@ -155,18 +160,21 @@ def files(batch: Path) -> dict[str, bytes]:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "project, tags, method",
+    "project, tags, method, base",
     [
-        (False, ("toppled", "occluded", "low_light"), "denoise"),
-        (True, ("near_edge", "occluded"), "project"),  # projections only
+        (False, ("toppled", "occluded", "low_light"), "denoise", "generator_v2"),
+        (True, ("near_edge", "occluded"), "project", "generator_v2"),  # projections only
+        # the default recipe (anticipation, floor box, per-tag realism): with two torch threads in the
+        # serial run its projections differed from the pooled run's in the sixth decimal
+        (True, ("near_edge", "occluded"), "project", "demo"),
     ],
 )
 def test_a_batch_with_repairs_is_the_same_with_two_workers_resumes_and_audits(
-    tmp_path, project, tags, method
+    tmp_path, project, tags, method, base
 ):
     from scenegen.cli import main
 
-    path = recipe(tmp_path, project=project, tags=tags)
+    path = recipe(tmp_path, project=project, tags=tags, base=base)
     assert main(["generate", str(path), "--out", str(tmp_path / "one"), "--workers", "1", "--quiet"]) == 0
     assert main(["generate", str(path), "--out", str(tmp_path / "two"), "--workers", "2", "--quiet"]) == 0
     one = files(tmp_path / "one")
