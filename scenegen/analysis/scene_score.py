@@ -170,7 +170,12 @@ def _load_scorer(path: Path, k: int) -> SceneScorer | None:
 
 
 def _save_scorer(scorer: SceneScorer, path: Path) -> None:
-    """Write the cache file atomically; a cache that cannot be written is only a slower next run."""
+    arrays = {name: getattr(scorer, name) for name in _ARRAYS}
+    _save_npz(path, **arrays, categories=np.array(scorer.categories, dtype=str))
+
+
+def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+    """Write a cache file atomically; a cache that cannot be written is only a slower next run."""
     import os
     import tempfile
 
@@ -178,8 +183,7 @@ def _save_scorer(scorer: SceneScorer, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(fd, "wb") as f:
-            arrays = {name: getattr(scorer, name) for name in _ARRAYS}
-            np.savez(f, **arrays, categories=np.array(scorer.categories, dtype=str))
+            np.savez(f, **arrays)
         os.replace(tmp, path)
     except OSError:
         pass
@@ -244,24 +248,9 @@ def _tag_matrix(reference: str) -> np.ndarray:
         except (OSError, KeyError, ValueError):
             rows = _train_rows(reference)
             matrix = np.array([[bool(r.get(f"tag_{t}")) for t in RARE_TAGS] for r in rows], bool)
-            _save_array(cache, matrix)
+            _save_npz(cache, tags=matrix)
         _TAG_MATRICES[reference] = matrix
     return _TAG_MATRICES[reference]
-
-
-def _save_array(path: Path, tags: np.ndarray) -> None:
-    """Write the tag cache atomically; one that cannot be written is only a slower next run."""
-    import os
-    import tempfile
-
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, tags=tags)
-        os.replace(tmp, path)
-    except OSError:
-        pass
 
 
 def composition_layouts(rows: Sequence[dict], composition: Sequence[str]) -> int:
