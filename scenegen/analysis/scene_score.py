@@ -253,9 +253,12 @@ def _tag_matrix(reference: str) -> np.ndarray:
     return _TAG_MATRICES[reference]
 
 
-def composition_layouts(rows: Sequence[dict], composition: Sequence[str]) -> int:
-    """How many of ``rows`` hold every tag of ``composition``."""
-    return sum(all(row.get(f"tag_{tag}") for tag in composition) for row in rows)
+def composition_layouts(reference: str, composition: Sequence[str]) -> int:
+    """How many train layouts of ``reference`` hold every tag of ``composition``."""
+    from scenegen.schema.condition import RARE_TAGS
+
+    held = _tag_matrix(reference)[:, [RARE_TAGS.index(t) for t in composition]]
+    return int(held.all(axis=1).sum())
 
 
 def tag_columns(
@@ -297,13 +300,10 @@ def composition_scores(
     """The per-tag judgement of a layout ``row`` holding the rare tags ``composition`` (at least two),
     or None when the reference's train split holds the composition in k layouts or more (the whole
     reference's score judges it, as before). Each tag's scorer is built once per process."""
-    from scenegen.schema.condition import RARE_TAGS
-
     composition = tuple(composition)
     if len(composition) < 2:
         return None
-    held = _tag_matrix(reference)[:, [RARE_TAGS.index(t) for t in composition]]
-    layouts = int(held.all(axis=1).sum())
+    layouts = composition_layouts(reference, composition)
     if layouts >= k:
         return None
     scores, counts = {}, {}
