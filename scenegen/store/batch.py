@@ -205,14 +205,15 @@ class BatchStore:
         root = self.root
         if root.exists() and not root.is_dir():
             raise StoreError(f"--out {root}: is a file; choose a directory")
-        if not root.exists() or not any(root.iterdir()):
-            root.mkdir(parents=True, exist_ok=True)
-            (root / ASSETS).mkdir(exist_ok=True)
-            for log in (INDEX, REJECTIONS):  # present from the start, empty or not
-                (root / log).touch()
-            atomic_write(root / "pipeline.yaml", pipeline_yaml)
-            return ResumeState()
         recipe = root / "pipeline.yaml"
+        if not recipe.is_file() and _never_started(root):
+            # pipeline.yaml is written first, so a run killed before it leaves at most its temp file
+            root.mkdir(parents=True, exist_ok=True)
+            for leftover in root.iterdir():
+                leftover.unlink()
+            atomic_write(recipe, pipeline_yaml)
+            self._skeleton()
+            return ResumeState()
         if not recipe.is_file():
             raise StoreError(
                 f"--out {root}: already exists and is not a scenegen batch; choose a new directory"
@@ -224,7 +225,7 @@ class BatchStore:
             )
         for leftover in [*root.glob(".tmp_*"), *root.glob(".*.tmp*"), *(root / ASSETS).glob(".*.tmp*")]:
             shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
-        (root / ASSETS).mkdir(exist_ok=True)
+        self._skeleton()  # a run killed just after pipeline.yaml may not have made it
         index = recover_jsonl(root / INDEX)
         rejections = _unfinished_repairs_cut(root / REJECTIONS, recover_jsonl(root / REJECTIONS), index)
         indexed = {row["scene_id"] for row in index}
@@ -233,6 +234,11 @@ class BatchStore:
                 shutil.rmtree(entry)
         last = max((row["proposal_index"] for row in [*index, *rejections]), default=-1)
         return ResumeState(last + 1, len(index), Counter(row["label"] for row in rejections))
+
+    def _skeleton(self) -> None:
+        (self.root / ASSETS).mkdir(exist_ok=True)
+        for log in (INDEX, REJECTIONS):  # present from the start, empty or not
+            (self.root / log).touch()
 
     def _ensure_assets(self, needed: dict[str, str]) -> None:
         for name, source in needed.items():
@@ -302,6 +308,14 @@ def _unfinished_repairs_cut(path: Path, rejections: list[dict], index: list[dict
     kept = rejections[:keep]
     atomic_write(path, "".join(json.dumps(row, sort_keys=True) + "\n" for row in kept))
     return kept
+
+
+def _never_started(root: Path) -> bool:
+    """Whether ``root`` is absent, empty, or holds only the temp file of a pipeline.yaml whose write
+    was killed: a batch that never began."""
+    if not root.exists():
+        return True
+    return all(entry.name.startswith(".pipeline.yaml.tmp") for entry in root.iterdir())
 
 
 def recover_jsonl(path: Path) -> list[dict]:

@@ -30,9 +30,11 @@ def start(cmd: list[str]) -> subprocess.Popen:
 
 
 def kill_after(process: subprocess.Popen, seconds: float) -> bool:
-    """SIGKILL the process group after ``seconds``; whether it was still running."""
+    """SIGKILL the process group after ``seconds``; whether it was still running. A run that ended
+    on its own must have succeeded (a killed run must never leave a folder the next one refuses)."""
     try:
         process.wait(timeout=seconds)
+        assert process.returncode == 0, process.stderr.read().decode()[-2000:]
         return False
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
