@@ -41,6 +41,9 @@ def main() -> None:
     )
     parser.add_argument("--cache", type=Path, default=Path("runs/cache/frames"))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/retrieval_designs"))
+    parser.add_argument(
+        "--heads", type=Path, default=Path("runs/retrieval_designs"), help="the trained heads (untracked)"
+    )
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(1)  # CPU seconds are the budget: one thread, no oversubscription
@@ -60,7 +63,7 @@ def main() -> None:
 
     results = {}
     if args.segmenter is None:
-        args.segmenter = args.out / "segmenter"
+        args.segmenter = args.heads / "segmenter"
         data = retrieval_data(train, scene_frames(train, args.cache), categories)
         train_head(data, args.segmenter, steps=args.steps, progress=True)
         del data
@@ -70,8 +73,8 @@ def main() -> None:
         "checkpoint": str(args.segmenter),
         "train_cpu_seconds": head.trained_on["cpu_seconds"],
     }
-    summary = train_classifier(train, scene_frames(train, args.cache), categories, args.out / "candidates")
-    predictors["b_candidates"] = CandidatePicker(args.out / "candidates").predict
+    summary = train_classifier(train, scene_frames(train, args.cache), categories, args.heads / "candidates")
+    predictors["b_candidates"] = CandidatePicker(args.heads / "candidates").predict
     results["b_candidates"] = {
         "train_cpu_seconds": summary["cpu_seconds"],
         "candidates": summary["candidates"],

@@ -1,10 +1,11 @@
 """Command line: ``scenegen generate`` and friends. ``scenegen --help`` lists the commands.
 
 The only place that parses arguments: each command's parser and handler live in ``scenes.py``
-(generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, coverage, import-real,
-audit, manifest add), ``export.py`` (export), ``policy.py`` (label, success-table, policy) and
-``experiment.py`` (experiment transfer), ``assets.py`` (assets add, list, show), ``retrieval.py``
-(retrieval train, eval), ``proposals.py`` (proposals label); handlers call
+(generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, reference-images,
+coverage, import-real, audit, manifest add, manifest refresh), ``export.py`` (export), ``policy.py``
+(label, success-table, policy train, eval), ``experiment.py`` (experiment transfer, verifier,
+panels, perception-gap), ``assets.py`` (assets add, list, show), ``retrieval.py`` (retrieval train,
+eval), ``proposals.py`` (proposals label, train, eval, compare); handlers call
 library functions with typed arguments.
 """
 

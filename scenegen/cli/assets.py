@@ -16,8 +16,16 @@ the mesh's texture (one image with texture coordinates) or its colour. Each impo
 or interrupted one leaves the catalog as it was. The bundled catalog (assets/catalog.yaml) is never
 written.
 
+A folder imports every mesh file at its top, in name order, on --workers processes; what each file is
+comes from --sidecar (YAML: `lemon.obj: {category: fruit, mass: 0.09, units: cm}`; or CSV with a
+`file` column and columns category, name, units, scale, mass, density, friction, up, texture,
+collision) over the flags given for all. It goes on past a file it refuses, skips a file whose asset
+the catalog already holds from the same bytes (so rerunning a killed command finishes it), and ends
+with one table: imported, refused with the reason, skipped as present (exit 1 if any was refused).
+
 examples:
   scenegen assets add scans/lemon.obj --category fruit --mass 0.09
+  scenegen assets add scans/ --sidecar scans/objects.yaml --workers 2
   scenegen assets add cad/bracket.stl --category bracket --units mm --density 2700
   scenegen assets add toy.glb --category toy --up y --catalog my_objects/catalog.yaml
 """
@@ -32,8 +40,18 @@ def add_commands(sub) -> None:
         description=ADD_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add.add_argument("meshes", nargs="+", type=Path, metavar="MESH", help="mesh files, one asset each")
-    add.add_argument("--category", required=True, help="what the object is (e.g. fruit, can, mug)")
+    add.add_argument(
+        "meshes", nargs="+", type=Path, metavar="MESH", help="mesh files (one asset each) or folders of them"
+    )
+    add.add_argument(
+        "--category", help="what the object is (e.g. fruit, can, mug); required unless a sidecar says"
+    )
+    add.add_argument(
+        "--sidecar",
+        type=Path,
+        help="YAML or CSV: each file's category, units or scale, mass, ... (of one folder)",
+    )
+    add.add_argument("--workers", type=int, default=1, help="imports staged at once (default 1)")
     add.add_argument("--name", help="asset name (default: the file's name); only with one MESH")
     size = add.add_mutually_exclusive_group()
     size.add_argument("--units", choices=("mm", "cm", "m"), help="the file's length unit (default m)")
@@ -99,40 +117,101 @@ def _catalogs(args):
 
 
 def _add(args) -> int:
+    if args.name and (len(args.meshes) > 1 or args.meshes[0].is_dir()):
+        return fail(f"--name {args.name}: give one MESH with --name (each asset needs its own name)")
+    if args.workers < 1:
+        return fail(f"--workers {args.workers}: must be at least 1")
+    if len(args.meshes) == 1 and not args.meshes[0].is_dir() and args.sidecar is None:
+        return _add_one(args)
+    return _add_many(args)
+
+
+def _options(args, category: str | None):
+    from scenegen.data.asset_import import ImportOptions
+
+    return ImportOptions(
+        category=category,
+        name=args.name,
+        scale=args.scale,
+        units=args.units,
+        mass=args.mass,
+        density=args.density,
+        friction=args.friction,
+        up=args.up,
+        texture=args.texture,
+        collision=args.collision,
+    )
+
+
+def _add_one(args) -> int:
     from scenegen.assets.catalog import CatalogError
-    from scenegen.data.asset_import import ImportOptions, add_asset
+    from scenegen.data.asset_import import add_asset
     from scenegen.data.asset_meshes import MeshImportError
 
-    if args.name and len(args.meshes) > 1:
-        return fail(f"--name {args.name}: give one MESH with --name (each asset needs its own name)")
-    for i, mesh in enumerate(args.meshes):
-        options = ImportOptions(
-            category=args.category,
-            name=args.name,
-            scale=args.scale,
-            units=args.units,
-            mass=args.mass,
-            density=args.density,
-            friction=args.friction,
-            up=args.up,
-            texture=args.texture,
-            collision=args.collision,
-        )
-        try:
-            result = add_asset(mesh, options, args.catalog)
-        except (MeshImportError, CatalogError, OSError) as exc:
-            done = f" ({i} imported before it stay)" if i else ""
-            return fail(first_line(exc) + done)
-        asset = result.asset
-        print(
-            f"{asset.name}: {asset.category}, {len(asset.parts.files)} convex part(s) ({asset.collision}, "
-            f"{asset.hull_to_visual_mm} mm off), {len(asset.resting_poses)} resting pose(s), "
-            f"{asset.mass * 1000:.0f} g, {' x '.join(f'{e * 100:.1f}' for e in asset.extents)} cm "
-            f"-> {result.catalog} ({result.seconds:.1f} s)"
-        )
-        for note in result.notes:
-            print(f"  note: {note}")
+    if not args.category:
+        return fail(f"{args.meshes[0]}: give --category (what the object is, e.g. fruit)")
+    try:
+        result = add_asset(args.meshes[0], _options(args, args.category), args.catalog)
+    except (MeshImportError, CatalogError, OSError) as exc:
+        return fail(first_line(exc))
+    asset = result.asset
+    print(
+        f"{asset.name}: {asset.category}, {len(asset.parts.files)} convex part(s) ({asset.collision}, "
+        f"{asset.hull_to_visual_mm} mm off), {len(asset.resting_poses)} resting pose(s), "
+        f"{asset.mass * 1000:.0f} g, {' x '.join(f'{e * 100:.1f}' for e in asset.extents)} cm "
+        f"-> {result.catalog} ({result.seconds:.1f} s)"
+    )
+    for note in result.notes:
+        print(f"  note: {note}")
     return 0
+
+
+def _add_many(args) -> int:
+    """Folders and several files: every file imported or refused, then one table."""
+    from scenegen.data.asset_folder import SidecarError, folder_options, import_meshes, read_sidecar
+
+    folders = [m for m in args.meshes if m.is_dir()]
+    if args.sidecar is not None and (len(folders) != 1 or len(args.meshes) != 1):
+        return fail(f"--sidecar {args.sidecar}: describes one folder; give that folder alone")
+    flags = _options(args, args.category)
+    jobs = []
+    try:
+        for path in args.meshes:
+            if path.is_dir():
+                sidecar = read_sidecar(args.sidecar, path) if args.sidecar else {}
+                jobs += folder_options(path, flags, sidecar)
+            elif not flags.category:
+                jobs.append((path, "no category: give --category"))
+            else:
+                jobs.append((path, flags))
+    except SidecarError as exc:
+        return fail(first_line(exc))
+    done = []
+
+    def said(row) -> None:
+        done.append(row)
+        what = first_line(ValueError(row.detail)) if row.outcome == "refused" else row.asset
+        print(f"[{len(done)}/{len(jobs)}] {row.file}: {row.outcome} {what}", flush=True)
+
+    rows = import_meshes(jobs, args.catalog, args.workers, on_row=said)
+    print()
+    for line in outcome_table(rows):
+        print(line)
+    return 1 if any(r.outcome == "refused" for r in rows) else 0
+
+
+def outcome_table(rows) -> list[str]:
+    """One line per file (its asset, or why it was refused), then the counts."""
+    width = max(len(r.file) for r in rows)
+    lines = []
+    for r in rows:
+        what = r.asset if r.outcome != "refused" else first_line(ValueError(r.detail))
+        lines.append(f"{r.file:<{width}}  {r.outcome:<8}  {what}")
+    counts = {k: sum(r.outcome == k for r in rows) for k in ("imported", "refused", "skipped")}
+    lines.append(
+        f"{counts['imported']} imported, {counts['refused']} refused, {counts['skipped']} skipped as present"
+    )
+    return lines
 
 
 def _list(args) -> int:

@@ -1,4 +1,5 @@
-"""`scenegen experiment transfer`: the transfer experiment (docs/transfer.md)."""
+"""`scenegen experiment transfer|verifier|panels|perception-gap`: the transfer experiment (docs/transfer.md),
+the learned verifier's measurement, the version 2 panels and the perception gap."""
 
 from __future__ import annotations
 

@@ -14,11 +14,13 @@ import removes a killed one's staging folder, and a folder it moved in without i
 
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import shutil
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -62,7 +64,7 @@ HEADER = "# Written by `scenegen assets add`; each asset's files are in the fold
 class ImportOptions:
     """What the user says about one mesh (``scenegen assets add --help``)."""
 
-    category: str
+    category: str | None  # None: refused before any import (a folder's file the sidecar left out)
     name: str | None = None
     scale: float | None = None
     units: str | None = None
@@ -88,13 +90,35 @@ def add_asset(
     """Import ``mesh_path`` into the user catalog ``catalog`` (a catalog.yaml or its folder; created
     if missing). Raises MeshImportError (the file) or CatalogError (the catalog) with one line; on
     any failure the catalog is as it was."""
+    return commit_asset(stage_asset(mesh_path, options, catalog, log), catalog)
+
+
+def default_name(mesh_path: Path) -> str:
+    """An asset's name when none is given: the file's name, lowercased, other characters as _."""
+    return re.sub(r"[^a-z0-9_]", "_", Path(mesh_path).stem.lower()).strip("_")
+
+
+@dataclass(frozen=True)
+class StagedAsset:
+    """An import's measured files in a staging folder of the catalog's folder, not yet listed."""
+
+    name: str
+    entry: dict
+    stage: Path  # holds NAME/
+    notes: tuple[str, ...]
+    seconds: float
+
+
+def stage_asset(mesh_path: Path, options: ImportOptions, catalog: Path, log=print) -> StagedAsset:
+    """The costly half of an import (mesh repair, convex parts, drops): the asset's files staged
+    beside ``catalog``, which is not written. Imports of different meshes may stage in parallel;
+    :func:`commit_asset` lists each, one at a time. Raises as :func:`add_asset`."""
     start = time.perf_counter()
     mesh_path, target = Path(mesh_path), catalog_file(catalog)
-    name = options.name or re.sub(r"[^a-z0-9_]", "_", mesh_path.stem.lower()).strip("_")
+    name = options.name or default_name(mesh_path)
     _check_names(mesh_path, name, options, target)
     folder = target.parent
-    entries = _entries(target)
-    _check_folder(folder, target, entries)
+    _check_folder(folder, target, _entries(target))
     mesh = read_user_mesh(mesh_path, options.scale, options.units, options.up, options.texture)
     notes = list(mesh.notes)
     if options.collision == "hull" and mesh.collision != "convex_hull":
@@ -105,22 +129,52 @@ def add_asset(
     stage = Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{os.getpid()}-", dir=folder))
     try:
         entry = _stage_asset(stage / name, name, mesh_path, mesh, options, notes, log)
-        asset = Asset(**entry).model_copy(update={"root": stage})
-        validate_asset_files(asset)
-        (stage / CATALOG_FILE).write_text(
-            HEADER + yaml.safe_dump({"version": 1, "assets": [*entries, entry]}, sort_keys=False, width=100)
-        )
-        leftover = folder / name
-        if _left_by_an_import(leftover):  # moved in by an import killed before its entry was written
-            shutil.rmtree(leftover)
-            notes.append(f"removed {leftover}, left by an interrupted import")
-        os.rename(stage / name, folder / name)
-        os.replace(stage / CATALOG_FILE, target)
-    finally:
+        validate_asset_files(Asset(**entry).model_copy(update={"root": stage}))
+    except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return StagedAsset(name, entry, stage, tuple(notes), time.perf_counter() - start)
+
+
+def commit_asset(staged: StagedAsset, catalog: Path) -> ImportResult:
+    """List a staged asset: its folder moved into place, then ``catalog.yaml`` replaced in one
+    rename, under a lock on the catalog's folder (another import may be committing). The staging
+    folder is removed whatever happens."""
+    start = time.perf_counter()
+    target = catalog_file(catalog)
+    folder, name, notes = target.parent, staged.name, list(staged.notes)
+    try:
+        with _locked(folder):
+            entries = _entries(target)
+            if any(entry.get("name") == name for entry in entries):
+                raise CatalogError(f"asset {name!r} is already in {target}; choose another with --name")
+            listing = {"version": 1, "assets": [*entries, staged.entry]}
+            (staged.stage / CATALOG_FILE).write_text(
+                HEADER + yaml.safe_dump(listing, sort_keys=False, width=100)
+            )
+            leftover = folder / name
+            if _left_by_an_import(leftover):  # moved in by an import killed before its entry was written
+                shutil.rmtree(leftover)
+                notes.append(f"removed {leftover}, left by an interrupted import")
+            os.rename(staged.stage / name, folder / name)
+            os.replace(staged.stage / CATALOG_FILE, target)
+    finally:
+        shutil.rmtree(staged.stage, ignore_errors=True)
     load_catalog.cache_clear()
     asset = load_catalog(target).get(name)
-    return ImportResult(asset, target, tuple(notes), time.perf_counter() - start)
+    return ImportResult(asset, target, tuple(notes), staged.seconds + time.perf_counter() - start)
+
+
+@contextmanager
+def _locked(folder: Path):
+    """An exclusive lock on a catalog's folder itself (flock on its directory: no file to leave
+    behind), released when the process ends however it ends."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing drops the lock
 
 
 def _remove_dead_staging(folder: Path) -> None:
