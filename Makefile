@@ -7,7 +7,7 @@ TEST_WORKERS ?= 2
 PYTEST_FILES_AT_ONCE = $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 export MUJOCO_GL ?= egl
 
-.PHONY: setup install-exporters demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-physics bench-stereo bench-audit bench-start sweep transfer clean
+.PHONY: setup install-exporters browser demo robosuite-objects generator-grocery bench-user-assets test test-fast test-full fuzz kill bench-soak audit lint assets bench bench-rare bench-requests bench-null bench-proposer bench-repair bench-realism bench-env bench-primitives bench-physics bench-stereo bench-audit bench-start sweep transfer clean
 
 $(BIN)/scenegen: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,11 +29,17 @@ $(VENV)/.exporters: constraints/exporters.txt $(BIN)/scenegen
 
 install-exporters: $(VENV)/.exporters  ## the LeRobot exporter (lerobot 0.4.4, dataset format v3.0) beside the project's pins
 
-demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), its contact sheet and audit
+demo: setup  ## generate and render the demo batch into runs/demo (replaces an earlier one), its contact sheet, audit and report
 	rm -rf runs/demo
 	$(BIN)/scenegen generate pipelines/demo.yaml --out runs/demo --workers 2
 	$(BIN)/scenegen show runs/demo
 	$(BIN)/scenegen audit runs/demo/manifest.yaml
+	$(BIN)/scenegen report runs/demo --quiet --workers 2  # prints its path: open it in a browser
+
+# Debian's chromium for the report's browser test (Playwright drives it; its own download fails here)
+browser:  ## install chromium with apt when it is missing (sudo when not root)
+	command -v chromium >/dev/null || { SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; }
 
 ROBOSUITE_OBJECTS = $(shell $(BIN)/python -c "import robosuite, os; print(os.path.dirname(robosuite.__file__))" 2>/dev/null)/models/assets
 RS_CATALOG = runs/robosuite_objects/catalog.yaml
@@ -67,10 +73,10 @@ bench-user-assets: setup  ## user assets with the generator: known categories; a
 	$(RK_ADD) $(ROBOSUITE_OBJECTS)/objects/meshes/milk.obj --category box --name rs_milk --mass 0.5 --texture $(ROBOSUITE_OBJECTS)/textures/ceramic.png
 	$(BIN)/python benchmarks/user_assets.py --n 30 $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
-test: setup install-exporters  ## the whole test suite, as CI runs it (exporters included; TEST_WORKERS=2 files at a time)
+test: setup install-exporters browser  ## the whole test suite, as CI runs it (exporters included; TEST_WORKERS=2 files at a time)
 	$(PYTEST_FILES_AT_ONCE) --durations=25
 
-test-fast: setup install-exporters  ## everything but the slow end-to-end tests
+test-fast: setup install-exporters browser  ## everything but the slow end-to-end tests
 	$(PYTEST_FILES_AT_ONCE) -m "not slow"
 
 test-full: setup  ## the full-size regenerations (the committed reference set, bit for bit; ~50 min)

@@ -97,6 +97,7 @@ FAMILIES = (
             "scenegen.assets.measure",
         ),
     ),
+    ("report", ("scenegen.report",)),
     ("env", ("scenegen.env",)),
     ("export", ("scenegen.export",)),
     ("perception", ("scenegen.perception",)),

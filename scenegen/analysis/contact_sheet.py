@@ -28,7 +28,9 @@ def _label(image: np.ndarray, lines: list[str]) -> np.ndarray:
     return np.vstack([image, band])
 
 
-def _depth_view(depth_mm: np.ndarray) -> np.ndarray:
+def depth_view(depth_mm: np.ndarray) -> np.ndarray:
+    """Millimetre depth as a colour image (near bright, far dark; missing pixels black): a uint16
+    PNG shows black in a browser and in most viewers."""
     valid = depth_mm > 0
     view = np.zeros(depth_mm.shape, np.uint8)
     if valid.any():
@@ -39,7 +41,8 @@ def _depth_view(depth_mm: np.ndarray) -> np.ndarray:
     return out
 
 
-def _seg_view(seg: np.ndarray) -> np.ndarray:
+def seg_view(seg: np.ndarray) -> np.ndarray:
+    """Instance ids as distinct colours (background black)."""
     ids = seg.astype(np.int64)
     colours = np.stack([(ids * 67) % 256, (ids * 151) % 256, (ids * 199) % 256], axis=-1).astype(np.uint8)
     colours[ids == 0] = 0
@@ -102,14 +105,14 @@ def contact_sheet(
         ]
         if depth:
             d = _read(scene_dir / f"{cam}_depth.png", cv2.IMREAD_UNCHANGED)
-            views.append(cv2.resize(_depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
+            views.append(cv2.resize(depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
             images = next(c for c in record["cameras"] if c["name"] == cam).get("images") or {}
             if "sensor_depth" in images:  # the depth sensor's frame beside the exact one (docs/sensor.md)
                 d = _read(scene_dir / images["sensor_depth"], cv2.IMREAD_UNCHANGED)
-                views.append(cv2.resize(_depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
+                views.append(cv2.resize(depth_view(d), THUMB, interpolation=cv2.INTER_NEAREST))
         if seg:
             s = _read(scene_dir / f"{cam}_seg.png", cv2.IMREAD_UNCHANGED)
-            views.append(cv2.resize(_seg_view(s), THUMB, interpolation=cv2.INTER_NEAREST))
+            views.append(cv2.resize(seg_view(s), THUMB, interpolation=cv2.INTER_NEAREST))
         target = next(o for o in record["objects"] if o["name"] == record["target"])
         tags = record.get("tags") or {}
         held = [t for t, v in tags.items() if (v.get("holds") if isinstance(v, dict) else v)]

@@ -32,7 +32,7 @@ from scenegen.audit.scenes import check_scenes, compare_image_sample
 from scenegen.manifest.derive import CHAINED_FILES, RECIPE_FILE, checksum_root
 from scenegen.manifest.io import inside
 from scenegen.manifest.schema import Source
-from scenegen.store.batch import ASSETS, INDEX, MANIFEST, REJECTIONS, TIMINGS
+from scenegen.store.batch import ASSETS, INDEX, MANIFEST, REJECTIONS, REPORT, REPORT_FILES, TIMINGS
 
 # Fields of a batch source that must equal the source re-derived from the batch's files.
 DERIVED_FIELDS = (
@@ -233,15 +233,27 @@ def _unlisted_top_level(audit, where: str, batch: Path) -> None:
     from scenegen.analysis.contact_sheet import CONTACT_SHEET
     from scenegen.data import CHART_NAME
 
-    files = {*CHAINED_FILES, MANIFEST, TIMINGS, CONTACT_SHEET, CHART_NAME}
+    files = {*CHAINED_FILES, MANIFEST, TIMINGS, CONTACT_SHEET, CHART_NAME, REPORT}
     for path in sorted(batch.iterdir()):
         if path.name.startswith("scene_") and path.is_dir():
+            continue
+        if path.name == REPORT_FILES:  # the report's thumbnails: plain files, none a link out
+            _report_files(audit, where, path, batch)
             continue
         expected = path.is_dir() if path.name == ASSETS else path.name in files and path.is_file()
         if not expected:
             audit.violation(f"{where}: {path.name}", "unlisted_file", "not a file or folder a batch holds")
         elif not inside(path, batch):
             audit.violation(f"{where}: {path.name}", "location", "a link out of the batch")
+
+
+def _report_files(audit, where: str, folder: Path, batch: Path) -> None:
+    if not folder.is_dir() or folder.is_symlink():
+        audit.violation(f"{where}: {folder.name}", "unlisted_file", "not a file or folder a batch holds")
+        return
+    for path in sorted(folder.iterdir()):
+        if not path.is_file() or path.is_symlink() or not inside(path, batch):
+            audit.violation(f"{where}: {REPORT_FILES}/{path.name}", "location", "not a thumbnail file")
 
 
 def _unlisted_under(audit, where: str, folder: Path, accounted: set[PurePosixPath], ignored=()) -> None:

@@ -4,9 +4,9 @@ The only place that parses arguments: each command's parser and handler live in 
 (generate, show), ``generator.py`` (train, sweep), ``data.py`` (reference, reference-images,
 coverage, import-real, audit, manifest add, manifest refresh), ``export.py`` (export), ``policy.py``
 (label, success-table, policy train, eval), ``experiment.py`` (experiment transfer, verifier,
-panels, perception-gap), ``assets.py`` (assets add, list, show), ``retrieval.py`` (retrieval train,
-eval), ``proposals.py`` (proposals label, train, eval, compare); handlers call
-library functions with typed arguments.
+panels, perception-gap), ``assets.py`` (assets add, list, show), ``report.py`` (report),
+``retrieval.py`` (retrieval train, eval), ``proposals.py`` (proposals label, train, eval, compare);
+handlers call library functions with typed arguments.
 """
 
 from __future__ import annotations
@@ -15,7 +15,18 @@ import argparse
 import os
 import sys
 
-from scenegen.cli import assets, data, experiment, export, generator, policy, proposals, retrieval, scenes
+from scenegen.cli import (
+    assets,
+    data,
+    experiment,
+    export,
+    generator,
+    policy,
+    proposals,
+    report,
+    retrieval,
+    scenes,
+)
 from scenegen.cli.common import USAGE_ERROR, fail
 
 DESCRIPTION = """\
@@ -34,6 +45,7 @@ exactly when the same command is run again; the output does not depend on --work
 examples:
   scenegen generate pipelines/demo.yaml --n 20 --seed 0 --out runs/demo --workers 2
   scenegen show runs/demo            # contact sheet: runs/demo/contact_sheet.png
+  scenegen report runs/demo          # the batch as a page: runs/demo/report.html
   scenegen audit runs/demo/manifest.yaml
   scenegen manifest add runs/demo    # into data_manifest.yaml, after auditing it
   scenegen export runs/demo --format webdataset --out runs/demo-wds
@@ -57,6 +69,7 @@ def _parser() -> argparse.ArgumentParser:
     retrieval.add_commands(sub)
     proposals.add_commands(sub)
     experiment.add_commands(sub)
+    report.add_commands(sub)
     return parser
 
 

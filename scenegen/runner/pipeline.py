@@ -125,6 +125,7 @@ def run_batch(
     seconds = dict.fromkeys(STAGES, 0.0)  # all proposals, summed over workers
     accepted_seconds = dict.fromkeys(STAGES, 0.0)  # accepted scenes only
     accepted_cpu = dict.fromkeys(STAGES, 0.0)
+    cpu = dict.fromkeys(STAGES, 0.0)  # all proposals: the workers' CPU, the coordinator's proposing
     rejections, accepted, index = Counter(state.rejections), state.accepted, state.next_index
     done_before = state.accepted + sum(state.rejections.values())
     start = time.perf_counter()
@@ -137,7 +138,7 @@ def run_batch(
         dynamic_ncols=True,
     )
 
-    proposals = _timed(proposal_stream(proposer, config, index), seconds)
+    proposals = _timed(proposal_stream(proposer, config, index), seconds, cpu)
     outcomes = _outcomes(proposals, proposer, config, workers, backend, seconds, pool)  # lazy
     try:
         for tries in outcomes if accepted < config.n and not _capped(config, accepted, rejections) else ():
@@ -147,12 +148,16 @@ def run_batch(
             for rejected in repaired:  # tries that a repair followed
                 for stage, s in rejected.seconds.items():
                     seconds[stage] += s
+                for stage, s in rejected.cpu.items():
+                    cpu[stage] += s
                 store.log_rejection(rejected.rejection.model_copy(update={"repaired": True}))
                 rejections[rejected.rejection.label] += 1
             seconds["store"] += time.perf_counter() - t0
             index = outcome.proposal_index + 1
             for stage, s in outcome.seconds.items():
                 seconds[stage] += s
+            for stage, s in outcome.cpu.items():
+                cpu[stage] += s
             t0 = time.perf_counter()
             if outcome.record is not None:
                 store.commit_scene(outcome.record, outcome.xml, outcome.needed, outcome.images)
@@ -185,6 +190,7 @@ def run_batch(
         "workers": workers,
         "backend": backend.kind,
         "stages": {k: round(v, 3) for k, v in seconds.items()},
+        "cpu": {k: round(v, 3) for k, v in cpu.items()},
         "proposals_this_run": proposals_done - done_before,
     }
     atomic_write(out / TIMINGS, json.dumps(timing, indent=1) + "\n")
@@ -207,12 +213,15 @@ def write_batch_manifest(out: Path, config: PipelineConfig, catalog_sha: str):
     return manifest
 
 
-def _timed(proposals: Iterator[SceneProposal], seconds: dict[str, float]) -> Iterator[SceneProposal]:
-    """Pass proposals through, adding the time spent making them to ``seconds['propose']``."""
+def _timed(
+    proposals: Iterator[SceneProposal], seconds: dict[str, float], cpu: dict[str, float]
+) -> Iterator[SceneProposal]:
+    """Pass proposals through, adding the wall and CPU time spent making them to ``propose``."""
     while True:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         proposal = next(proposals, None)
         seconds["propose"] += time.perf_counter() - t0
+        cpu["propose"] += time.process_time() - c0
         if proposal is None:
             return
         yield proposal

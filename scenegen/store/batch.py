@@ -10,9 +10,10 @@ Layout of a batch ``OUT/``::
     manifest.yaml       the batch manifest (counts derived from the files above)
     timings.json        wall-clock time per stage (not part of the deterministic output)
 
-Two views may be written into it later, by default: ``contact_sheet.png`` (``scenegen show``) and
-``coverage.png`` (``scenegen coverage``); they are not part of the data. ``scenegen audit`` refuses
-anything else (scenegen/audit/files.py).
+Three views may be written into it later, by default: ``contact_sheet.png`` (``scenegen show``),
+``coverage.png`` (``scenegen coverage``) and ``report.html`` with its thumbnails in ``report_files/``
+(``scenegen report``); they are not part of the data. ``scenegen audit`` refuses anything else
+(scenegen/audit/files.py).
 
 Scenes are written to a temporary directory and renamed into place, so a scene directory is either
 complete or absent.
@@ -42,6 +43,8 @@ INDEX = "index.jsonl"
 REJECTIONS = "rejections.jsonl"
 MANIFEST = "manifest.yaml"
 TIMINGS = "timings.json"
+REPORT = "report.html"  # scenegen report: a view, not data
+REPORT_FILES = "report_files"  # its thumbnails
 
 
 @functools.lru_cache(maxsize=4096)
