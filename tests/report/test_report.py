@@ -181,3 +181,30 @@ def test_bad_paths_get_one_line(tmp_path, capsys):
         assert main(["report", str(path)]) == 2
         error = capsys.readouterr().err.strip()
         assert error.count("\n") == 0 and words in error, error
+
+
+def test_an_unrendered_batch_reports_its_scenes_without_images(tmp_path):
+    batch = tmp_path / "batch"
+    recipe = PROJECT_ROOT / "pipelines" / "procedural.yaml"
+    assert (
+        main(
+            [
+                "generate",
+                str(recipe),
+                "--n",
+                "2",
+                "--seed",
+                "1",
+                "--out",
+                str(batch),
+                "--no-render",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert main(["report", str(batch), "--quiet", "--no-audit"]) == 0
+    html = (batch / "report.html").read_text()
+    assert html.count('class="noimg">not rendered<') == 2 and "NOT AUDITED" in html
+    assert not any((batch / "report_files").iterdir())
+    assert f'data-count="scenes">{recount(batch)["scenes"]}<' in html
