@@ -60,6 +60,11 @@ def first_screen(html: Path) -> dict:
         for _ in range(LOADS):
             page = browser.new_page(viewport={"width": 1400, "height": 1000})
             page.goto(html.as_uri(), wait_until="load")
+            for _ in range(100):  # the paint entry can be recorded after the load event (the page's CSP
+                # forbids string evaluation, so no wait_for_function)
+                if page.evaluate("() => performance.getEntriesByName('first-contentful-paint').length"):
+                    break
+                page.wait_for_timeout(50)
             entry = page.evaluate(
                 """() => {
                   const nav = performance.getEntriesByType('navigation')[0];
