@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return USAGE_ERROR
-    no_gl = args.command in ("train", "sweep", "audit", "manifest", "export", "success-table") or (
+    no_gl = args.command in ("train", "sweep", "audit", "manifest", "export", "success-table", "report") or (
         args.command == "generate" and args.no_render
     )
     if no_gl and "mujoco" not in sys.modules:

@@ -168,6 +168,7 @@ def _add_one(args) -> int:
 
 def _add_many(args) -> int:
     """Folders and several files: every file imported or refused, then one table."""
+    from scenegen.assets.catalog import CatalogError
     from scenegen.data.asset_folder import SidecarError, folder_options, import_meshes, read_sidecar
 
     folders = [m for m in args.meshes if m.is_dir()]
@@ -193,7 +194,10 @@ def _add_many(args) -> int:
         what = first_line(ValueError(row.detail)) if row.outcome == "refused" else row.asset
         print(f"[{len(done)}/{len(jobs)}] {row.file}: {row.outcome} {what}", flush=True)
 
-    rows = import_meshes(jobs, args.catalog, args.workers, on_row=said)
+    try:
+        rows = import_meshes(jobs, args.catalog, args.workers, on_row=said)
+    except (CatalogError, OSError) as exc:  # the catalog itself cannot be read
+        return fail(first_line(exc))
     print()
     for line in outcome_table(rows):
         print(line)

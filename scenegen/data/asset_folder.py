@@ -80,7 +80,7 @@ def mesh_files(folder: Path) -> list[Path]:
 def read_sidecar(path: Path, folder: Path) -> dict[str, SidecarRow]:
     """``path``'s rows by file name; each must name a mesh file of ``folder``."""
     try:
-        text = Path(path).read_text()
+        text = Path(path).read_text(encoding="utf-8-sig")  # a spreadsheet's CSV may start with a BOM
     except (OSError, UnicodeDecodeError) as exc:
         raise SidecarError(f"--sidecar {path}: cannot be read ({exc.__class__.__name__})") from exc
     if Path(path).suffix.lower() == ".csv":

@@ -235,8 +235,8 @@ def _check_folder(folder: Path, target: Path, entries: list[dict]) -> None:
     owned = {target.name}
     for entry in entries:
         owned |= {PurePosixPath(f).parts[0] for f in entry_files(entry) or [] if PurePosixPath(f).parts}
-    staging = {p.name for p in folder.glob(f"{STAGING_PREFIX}*")}
-    others = [p for p in folder.iterdir() if p.name not in owned | staging]
+    # one listing: another import's staging folder made meanwhile is still seen as staging
+    others = [p for p in folder.iterdir() if p.name not in owned and not p.name.startswith(STAGING_PREFIX)]
     strangers = sorted(p.name for p in others if not _left_by_an_import(p))
     if strangers:
         shown = ", ".join(strangers[:3]) + (f" and {len(strangers) - 3} more" if len(strangers) > 3 else "")

@@ -7,6 +7,7 @@ with Wilson intervals, and the audit's verdict recomputed now."""
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -17,10 +18,11 @@ from scenegen.analysis.realism import wilson_interval
 from scenegen.core.files import sha256_file
 from scenegen.paths import ASSETS_DIR
 from scenegen.schema.condition import TAGS
-from scenegen.store.batch import REJECTIONS, TIMINGS, StoreError, read_jsonl, scene_dirs
+from scenegen.store.batch import REJECTIONS, TIMINGS, StoreError, scene_dirs
 
 REFERENCE = ASSETS_DIR / "reference" / "reference.parquet"
 STAGE_ORDER = ("propose", "check", "build", "settle", "tag", "render", "store")  # runner/pipeline.py STAGES
+CAMERA = re.compile(r"^[A-Za-z0-9_]+$")  # a camera name that can be part of a thumbnail's file name
 OBJECT_FACTS = ("name", "asset", "category", "support", "position", "quat")  # of each settled object
 RULES = {  # how each realism metric is judged, in words beside its threshold
     "layout_c2st": "a classifier tells the batch's layouts from the reference's no better than this AUC",
@@ -33,9 +35,14 @@ class ReportError(ValueError):
     """The path cannot be reported; the message names it and what to do."""
 
 
-def batch_facts(batch: Path, audit_report=None, reference: Path = REFERENCE) -> dict:
+NOT_AUDITED = "audit left out (--no-audit)"
+
+
+def batch_facts(
+    batch: Path, audit_report=None, reference: Path = REFERENCE, audit_reason: str = NOT_AUDITED
+) -> dict:
     """Everything the batch page shows (JSON-serializable). ``audit_report``: an AuditReport made
-    now (None: no manifest to audit)."""
+    now (None: not audited, for ``audit_reason``)."""
     batch = Path(batch)
     try:
         rows_dirs = scene_dirs(batch)
@@ -44,7 +51,7 @@ def batch_facts(batch: Path, audit_report=None, reference: Path = REFERENCE) -> 
     recipe = _read_yaml(batch / "pipeline.yaml")
     manifest = _read_yaml(batch / "manifest.yaml") if (batch / "manifest.yaml").is_file() else {}
     source = (manifest.get("sources") or [{}])[0]
-    rejections = read_jsonl(batch / REJECTIONS)
+    rejections = _rows(batch / REJECTIONS)
     scenes = [_scene(row, folder, batch) for row, folder in rows_dirs]
     timings = json.loads((batch / TIMINGS).read_text()) if (batch / TIMINGS).is_file() else {}
     return {
@@ -56,8 +63,17 @@ def batch_facts(batch: Path, audit_report=None, reference: Path = REFERENCE) -> 
         "realism": [_check(c) for c in source.get("realism") or []],
         "tag_rates": tag_rates(scenes, recipe, reference),
         "scenes": scenes,
-        "audit": audit_facts(audit_report),
+        "audit": audit_facts(audit_report, audit_reason),
     }
+
+
+def _rows(path: Path) -> list[dict]:
+    """An append-only log's rows, leaving out a torn last line (a killed run's; the next run of the
+    batch cuts it), without writing to the batch."""
+    if not path.is_file():
+        return []
+    data = path.read_bytes()
+    return [json.loads(line) for line in data[: data.rfind(b"\n") + 1].decode().splitlines() if line.strip()]
 
 
 def _read_yaml(path: Path) -> dict:
@@ -107,10 +123,11 @@ def _counts(scenes: list[dict], rejections: list[dict]) -> dict:
 def _funnel(accepted: int, rejections: list[dict]) -> dict:
     """Tries into each stage, what each stage removed (by label), and the repairs that followed."""
     by_stage: dict[str, Counter] = {}
-    repaired: Counter = Counter()
+    repaired: Counter = Counter()  # by (stage, label)
     for row in rejections:
-        by_stage.setdefault(row.get("stage", "check"), Counter())[row["label"]] += 1
-        repaired[row["label"]] += bool(row.get("repaired"))
+        stage = row.get("stage", "check")
+        by_stage.setdefault(stage, Counter())[row["label"]] += 1
+        repaired[stage, row["label"]] += bool(row.get("repaired"))
     remaining = accepted + len(rejections)
     stages = []
     for stage in sorted(by_stage, key=lambda s: STAGE_ORDER.index(s) if s in STAGE_ORDER else 99):
@@ -121,7 +138,7 @@ def _funnel(accepted: int, rejections: list[dict]) -> dict:
                 "entered": remaining,
                 "removed": sum(removed.values()),
                 "labels": [
-                    {"label": label, "count": n, "repaired": repaired[label]}
+                    {"label": label, "count": n, "repaired": repaired[stage, label]}
                     for label, n in removed.most_common()
                 ],
             }
@@ -194,7 +211,7 @@ def _scene(row: dict, folder: Path, batch: Path) -> dict:
     target = next((o for o in objects if o.get("name") == record.get("target")), {})
     tags = record.get("tags") or {}
     return {
-        "id": record.get("scene_id", folder.name),
+        "id": folder.name,  # the index's scene_id, checked by scene_dirs (never the record's own word)
         "folder": folder.relative_to(batch).as_posix(),
         "proposal_index": record.get("proposal_index"),
         "seed": record.get("seed"),
@@ -205,7 +222,7 @@ def _scene(row: dict, folder: Path, batch: Path) -> dict:
         "tags": tags,
         "objects": [{k: o.get(k) for k in OBJECT_FACTS} for o in objects],
         "furniture": record.get("furniture") or [],
-        "cameras": [c["name"] for c in record.get("cameras") or []],
+        "cameras": [c["name"] for c in record.get("cameras") or [] if CAMERA.match(str(c.get("name", "")))],
         "rendered": record.get("render") is not None,
         "provenance": record.get("provenance") or {},
         "checksums": {
@@ -216,10 +233,12 @@ def _scene(row: dict, folder: Path, batch: Path) -> dict:
     }
 
 
-def audit_facts(report) -> dict:
-    """An AuditReport as the page shows it (None: the audit did not run)."""
+def audit_facts(report, reason: str = NOT_AUDITED) -> dict:
+    """An AuditReport as the page shows it (None: the audit did not run, for ``reason``)."""
     if report is None:
-        return {"ran": False, "ok": None, "violations": [], "more_violations": 0, "warnings": 0}
+        return {"ran": False, "ok": None, "violations": [], "more_violations": 0, "warnings": 0} | {
+            "reason": reason
+        }
     return {
         "ran": True,
         "ok": report.ok,

@@ -11,7 +11,7 @@ from pathlib import Path
 import jinja2
 
 from scenegen import __version__
-from scenegen.report.facts import ReportError, batch_facts
+from scenegen.report.facts import NOT_AUDITED, ReportError, batch_facts
 from scenegen.store.batch import REPORT, REPORT_FILES
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -45,12 +45,16 @@ def batch_report(batch: Path, audit: bool = True, workers: int = 1, progress=Non
     from scenegen.report.thumbs import write_thumbnails
 
     batch = Path(batch)
-    report = None
+    for leftover in batch.glob(f".{REPORT}.tmp*"):  # a killed report's (the audit counts it otherwise)
+        leftover.unlink()
+    report, reason = None, NOT_AUDITED
     if audit and (batch / "manifest.yaml").is_file():
         from scenegen.audit.manifest import audit as run_audit
 
         report = run_audit(batch / "manifest.yaml", workers=workers)
-    facts = batch_facts(batch, report)
+    elif audit:
+        reason = "not audited: no manifest.yaml (an unfinished batch: rerun its generate command)"
+    facts = batch_facts(batch, report, audit_reason=reason)
     files = batch / REPORT_FILES
     files.mkdir(exist_ok=True)
     scenes = facts["scenes"]

@@ -31,6 +31,7 @@ def reported(tmp_path_factory) -> Path:
     recipe = PROJECT_ROOT / "pipelines" / "procedural.yaml"
     assert main(["generate", str(recipe), "--n", "10", "--seed", "0", "--out", str(batch), "--quiet"]) == 0
     assert main(["report", str(batch), "--quiet"]) == 0
+    assert recount(batch)["rejected"] > 0  # the funnel and its counts have something to show
     return batch
 
 
@@ -208,3 +209,20 @@ def test_an_unrendered_batch_reports_its_scenes_without_images(tmp_path):
     assert html.count('class="noimg">not rendered<') == 2 and "NOT AUDITED" in html
     assert not any((batch / "report_files").iterdir())
     assert f'data-count="scenes">{recount(batch)["scenes"]}<' in html
+
+
+def test_a_killed_batch_reports_what_it_holds_and_says_why_it_was_not_audited(reported, tmp_path):
+    killed = tmp_path / "killed"
+    shutil.copytree(reported, killed, ignore=shutil.ignore_patterns("report*", "manifest.yaml"))
+    whole = recount(killed)
+    with open(killed / "rejections.jsonl", "a") as log:
+        log.write('{"check": "collision", "label": "coll')  # a torn last line, as a SIGKILL leaves it
+    before = (killed / "rejections.jsonl").read_bytes()
+    assert main(["report", str(killed), "--quiet"]) == 0
+    html = (killed / "report.html").read_text()
+    assert (
+        f'data-count="rejected">{whole["rejected"]}<' in html
+        and f'data-count="scenes">{whole["scenes"]}<' in html
+    )
+    assert "not audited: no manifest.yaml" in html
+    assert (killed / "rejections.jsonl").read_bytes() == before  # the report writes nothing of the batch's
