@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 from scenegen.assets.catalog import CatalogError, catalog_file, load_catalog
 from scenegen.core.files import OutsideRootError, confined, sha256_file
 from scenegen.data.asset_import import ImportOptions, commit_asset, default_name, stage_asset
-from scenegen.data.asset_meshes import FORMATS, MeshImportError
+from scenegen.data.asset_meshes import FORMATS, UNITS, MeshImportError
 
 Outcome = Literal["imported", "refused", "skipped"]
 
@@ -175,8 +175,33 @@ def _decided_early(mesh: Path, options: ImportOptions | str, target: Path) -> Fo
     if target.is_file():
         listed = load_catalog(target).by_name.get(name)
         if listed is not None and listed.source and listed.source.sha256 == sha256_file(mesh):
+            changed = _changed(listed, options)
+            if changed:  # a sidecar or flag fixed since: a skip would keep the old values
+                return FolderRow(
+                    mesh.name,
+                    "refused",
+                    name,
+                    f"{name} is in {target} from these bytes with another {', '.join(changed)}; remove it "
+                    "from the catalog or give another name",
+                )
             return FolderRow(mesh.name, "skipped", name, f"already in {target}")
     return None
+
+
+def _changed(listed, options: ImportOptions) -> list[str]:
+    """What ``options`` set otherwise than the listed asset was imported with."""
+    changed = []
+    if listed.category != options.category:
+        changed.append("category")
+    if abs(listed.source.scale - float(options.scale or UNITS[options.units or "m"])) > 1e-12:
+        changed.append("units or scale")
+    if listed.source.up != options.up:
+        changed.append("up axis")
+    if options.mass is not None and abs(listed.mass - options.mass) > 1e-4 * options.mass:  # density rounds
+        changed.append("mass")
+    if options.density is not None and abs(listed.density - options.density) > 1e-3:
+        changed.append("density")
+    return changed
 
 
 def _stage_job(job: tuple[Path, ImportOptions, Path]):

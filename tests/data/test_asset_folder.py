@@ -92,6 +92,14 @@ def test_a_folder_imports_the_good_meshes_names_the_bad_one_and_a_rerun_skips_th
     assert capsys.readouterr().out.strip().splitlines()[-1] == "0 imported, 1 refused, 5 skipped as present"
     assert catalog.read_bytes() == before
 
+    sidecar.write_text(yaml.safe_dump({**SIDECAR, "carton.obj": {"category": "box", "mass": 0.25}}))
+    assert add(folder, catalog, "--sidecar", str(sidecar)) == 1  # the fixed mass is not skipped over
+    table = capsys.readouterr().out.strip().splitlines()
+    assert table[-1] == "0 imported, 2 refused, 4 skipped as present"
+    assert "with another mass; remove it" in next(line for line in table if line.startswith("carton.obj  "))
+    assert catalog.read_bytes() == before
+    sidecar.write_text(yaml.safe_dump(SIDECAR))
+
     serial = tmp_path / "serial" / "catalog.yaml"  # one worker: the same catalog, byte for byte
     assert add(folder, serial, "--sidecar", str(sidecar), "--workers", "1") == 1
     assert serial.read_bytes() == before
