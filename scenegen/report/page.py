@@ -1,10 +1,9 @@
 """The report pages: facts and plots poured into a jinja2 template whose styles and script are inlined,
-written atomically (a temporary file, then a rename), thumbnails beside it."""
+written atomically (store.batch.atomic_write), thumbnails beside it."""
 
 from __future__ import annotations
 
 import datetime as dt
-import os
 from collections import Counter
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import jinja2
 
 from scenegen import __version__
 from scenegen.report.facts import NOT_AUDITED, ReportError, batch_facts
-from scenegen.store.batch import REPORT, REPORT_FILES
+from scenegen.store.batch import REPORT, REPORT_FILES, atomic_write
 
 TEMPLATES = Path(__file__).parent / "templates"
 
@@ -25,12 +24,6 @@ def _environment() -> jinja2.Environment:
         trim_blocks=True,
         lstrip_blocks=True,
     )
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def _now() -> str:
@@ -85,7 +78,7 @@ def batch_report(batch: Path, audit: bool = True, workers: int = 1, progress=Non
             version=__version__,
         )
     )
-    _write(batch / REPORT, html)
+    atomic_write(batch / REPORT, html)
     return batch / REPORT
 
 
@@ -122,7 +115,7 @@ def project_report(manifest: Path, out: Path | None = None, audit: bool = True, 
     )
     out = Path(out) if out else manifest.parent / REPORT
     out.parent.mkdir(parents=True, exist_ok=True)
-    _write(out, html)
+    atomic_write(out, html)
     return out
 
 

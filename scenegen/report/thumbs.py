@@ -11,6 +11,7 @@ import cv2
 
 from scenegen.analysis.contact_sheet import depth_view, seg_view
 from scenegen.core.files import OutsideRootError, confined
+from scenegen.store.batch import atomic_write
 
 SIZE = (224, 168)  # width, height
 KINDS = {  # kind -> (the scene's file, read flags, view, interpolation, thumbnail suffix)
@@ -26,7 +27,7 @@ def thumbnail_name(scene_id: str, camera: str, kind: str) -> str:
 
 def write_thumbnails(batch: Path, scene: dict, out: Path) -> dict[str, dict[str, str]]:
     """The thumbnails of one scene (``facts.batch_facts``'s entry) written into ``out``; camera ->
-    kind -> file name. Each file is written whole (a temporary name, then a rename)."""
+    kind -> file name. Each file is written whole (``atomic_write``)."""
     made: dict[str, dict[str, str]] = {}
     if not scene["rendered"]:
         return made
@@ -47,8 +48,6 @@ def write_thumbnails(batch: Path, scene: dict, out: Path) -> dict[str, dict[str,
             if not ok:
                 continue
             name = thumbnail_name(scene["id"], camera, kind)
-            tmp = out / f".{name}.tmp"
-            tmp.write_bytes(data.tobytes())
-            tmp.replace(out / name)
+            atomic_write(out / name, data.tobytes())
             made.setdefault(camera, {})[kind] = name
     return made
