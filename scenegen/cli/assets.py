@@ -191,7 +191,7 @@ def _add_many(args) -> int:
 
     def said(row) -> None:
         done.append(row)
-        what = first_line(ValueError(row.detail)) if row.outcome == "refused" else row.asset
+        what = _shown(row)
         print(f"[{len(done)}/{len(jobs)}] {row.file}: {row.outcome} {what}", flush=True)
 
     try:
@@ -204,12 +204,17 @@ def _add_many(args) -> int:
     return 1 if any(r.outcome == "refused" for r in rows) else 0
 
 
+def _shown(row) -> str:
+    """A row's asset, or the first line of why it was refused."""
+    return (row.detail.strip().splitlines() or [""])[0] if row.outcome == "refused" else row.asset
+
+
 def outcome_table(rows) -> list[str]:
     """One line per file (its asset, or why it was refused), then the counts."""
     width = max(len(r.file) for r in rows)
     lines = []
     for r in rows:
-        what = r.asset if r.outcome != "refused" else first_line(ValueError(r.detail))
+        what = _shown(r)
         lines.append(f"{r.file:<{width}}  {r.outcome:<8}  {what}")
     counts = {k: sum(r.outcome == k for r in rows) for k in ("imported", "refused", "skipped")}
     lines.append(
