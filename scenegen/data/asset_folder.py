@@ -53,6 +53,8 @@ class SidecarRow(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _blank_is_unset(cls, value):
+        if isinstance(value, bool):  # YAML's true/yes would otherwise pass as 1.0
+            raise ValueError(f"{value!r} is not a value for this key")
         return None if isinstance(value, str) and not value.strip() else value  # an empty CSV cell
 
 
@@ -87,10 +89,18 @@ def read_sidecar(path: Path, folder: Path) -> dict[str, SidecarRow]:
         rows = list(csv.DictReader(io.StringIO(text)))
         if rows and "file" not in rows[0]:
             raise SidecarError(f"--sidecar {path}: needs a `file` column (then category, mass, ...)")
-        raw = {row.pop("file"): row for row in rows}
+        raw = {}
+        for line, row in enumerate(rows, start=2):
+            file = row.pop("file")
+            if file in raw:
+                raise SidecarError(f"--sidecar {path}: line {line} names {file!r} a second time")
+            raw[file] = row
     else:
         try:
-            raw = yaml.safe_load(text) or {}
+            raw = yaml.load(text, Loader=_UniqueKeys) or {}
+        except yaml.MarkedYAMLError as exc:
+            where = f"line {exc.problem_mark.line + 1}: " if exc.problem_mark else ""
+            raise SidecarError(f"--sidecar {path}: not YAML ({where}{exc.problem})") from exc
         except yaml.YAMLError as exc:
             raise SidecarError(f"--sidecar {path}: not YAML ({exc.__class__.__name__})") from exc
         if not isinstance(raw, dict) or not all(isinstance(v, dict) for v in raw.values()):
@@ -222,6 +232,21 @@ def _commit(mesh: Path, staged, target: Path) -> FolderRow:
         return FolderRow(mesh.name, "refused", staged.name, str(exc).strip())
     notes = "; ".join(result.notes)
     return FolderRow(mesh.name, "imported", result.asset.name, notes)
+
+
+class _UniqueKeys(yaml.SafeLoader):
+    """safe_load's loader, refusing a mapping that names a key twice (safe_load keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"{key!r} named a second time", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 def _pydantic_line(exc: Exception) -> str:

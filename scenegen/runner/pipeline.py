@@ -185,18 +185,46 @@ def run_batch(
     wall = time.perf_counter() - start
     write_batch_manifest(out, config, catalog.sha256)
     proposals_done = accepted + sum(rejections.values())
-    timing = {
-        "wall": round(wall, 3),
-        "workers": workers,
-        "backend": backend.kind,
-        "stages": {k: round(v, 3) for k, v in seconds.items()},
-        "cpu": {k: round(v, 3) for k, v in cpu.items()},
-        "proposals_this_run": proposals_done - done_before,
-    }
-    atomic_write(out / TIMINGS, json.dumps(timing, indent=1) + "\n")
+    done = proposals_done - done_before
+    run = {"wall": wall, "workers": workers, "backend": backend.kind, "proposals": done}
+    write_timings(out / TIMINGS, run, seconds, cpu)
     return BatchSummary(
         out, accepted, proposals_done, rejections, seconds, accepted_seconds, accepted_cpu, wall
     )
+
+
+def write_timings(path: Path, run: dict, seconds: Counter, cpu: Counter) -> None:
+    """timings.json: wall and CPU seconds per stage summed over every finished run of the batch (a
+    resumed batch's earlier runs included), each run's own wall, workers, backend and proposals under
+    ``runs``; ``workers``, ``backend`` and ``proposals_this_run`` are the last run's. A run killed
+    before its end adds nothing. Not part of the deterministic output."""
+    try:
+        before = json.loads(path.read_text())
+        runs = list(before.get("runs") or [_as_run(before)])
+        stages, cpus = Counter(before.get("stages") or {}), Counter(before.get("cpu") or {})
+    except (OSError, ValueError, TypeError, AttributeError, KeyError):  # none yet, or not one this code wrote
+        runs, stages, cpus = [], Counter(), Counter()
+    if runs and not run["proposals"]:
+        return  # a rerun of a complete batch: nothing done, nothing to add
+    stages.update(seconds)
+    cpus.update(cpu)
+    runs.append({**run, "wall": round(run["wall"], 3)})
+    timing = {
+        "wall": round(sum(r["wall"] for r in runs), 3),
+        "workers": run["workers"],
+        "backend": run["backend"],
+        "stages": {k: round(v, 3) for k, v in stages.items()},
+        "cpu": {k: round(v, 3) for k, v in cpus.items()},
+        "proposals_this_run": run["proposals"],
+        "runs": runs,
+    }
+    atomic_write(path, json.dumps(timing, indent=1) + "\n")
+
+
+def _as_run(timing: dict) -> dict:
+    """A timings.json written before ``runs`` existed, as its one run."""
+    keys = ("wall", "workers", "backend")
+    return {**{k: timing[k] for k in keys}, "proposals": timing.get("proposals_this_run", 0)}
 
 
 def write_batch_manifest(out: Path, config: PipelineConfig, catalog_sha: str):

@@ -8,7 +8,8 @@ Layout of a batch ``OUT/``::
     index.jsonl         one row per accepted scene, in proposal-index order
     rejections.jsonl    one row per rejected proposal, keyed by proposal index
     manifest.yaml       the batch manifest (counts derived from the files above)
-    timings.json        wall-clock time per stage (not part of the deterministic output)
+    timings.json        wall and CPU time per stage, summed over the batch's finished runs, each run
+                        listed (not part of the deterministic output)
 
 Three views may be written into it later, by default: ``contact_sheet.png`` (``scenegen show``),
 ``coverage.png`` (``scenegen coverage``) and ``report.html`` with its thumbnails in ``report_files/``

@@ -121,8 +121,12 @@ def test_a_csv_sidecar_and_bad_sidecars(tmp_path, capsys):
         ("carton.obj: {categry: a}\n", "carton.obj: categry"),
         ("carton.obj: {units: inch}\n", "carton.obj: units"),
         ("- carton.obj\n", "must map each file name"),
+        ("carton.obj: {mass: true}\n", "carton.obj: mass"),  # not read as 1 kg
+        ("carton.obj: {mass: 0.3}\ncarton.obj: {mass: 3}\n", "line 2: 'carton.obj' named a second time"),
+        ("carton.obj: {mass: [0.3\n", "not YAML (line 2"),
+        ("file,mass\ncarton.obj,0.3\ncarton.obj,3\n", "line 3 names 'carton.obj' a second time"),
     ):
-        bad = tmp_path / "bad.yaml"
+        bad = tmp_path / ("bad.csv" if text.startswith("file,") else "bad.yaml")
         bad.write_text(text)
         other = tmp_path / "other" / "catalog.yaml"
         assert main(["assets", "add", str(folder), "--sidecar", str(bad), "--catalog", str(other)]) == 2
