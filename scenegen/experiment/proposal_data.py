@@ -30,7 +30,14 @@ from scenegen.experiment.closed_loop import Workers, episode_env, loaded_percept
 from scenegen.experiment.proposal_labels import DEFAULT_LABELS, LabelConfig, candidate_labels
 from scenegen.experiment.sequences import ObservationStore, PathStore
 from scenegen.manipulation.proposals import Candidate
-from scenegen.policy.proposal_model import CHANNELS, CROP, FEATURES, candidate_crop, candidate_features
+from scenegen.policy.proposal_model import (
+    CHANNELS,
+    CROP,
+    FEATURES,
+    MODEL_VERSION,
+    candidate_crop,
+    candidate_features,
+)
 from scenegen.store.batch import atomic_write
 
 
@@ -93,7 +100,8 @@ class Examples:
 
 
 def _cache_key(sha: str, candidates: Sequence[dict], sight: str) -> str:
-    text = json.dumps({"scene": sha, "candidates": candidates, "sight": sight, "crop": CROP}, sort_keys=True)
+    keys = {"scene": sha, "candidates": candidates, "sight": sight, "crop": CROP, "model": MODEL_VERSION}
+    text = json.dumps(keys, sort_keys=True)  # the cache holds the features too: a new model version, anew
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 

@@ -32,9 +32,9 @@ from scenegen.schema.scene import Camera
 CROP = 48  # px of the crop's side, at the cameras' 320 x 240
 DEPTH_RANGE = 0.10  # m either side of the candidate point's depth the crop's depth channel spans
 KINDS = ("top", "side", "push", "pull")  # a candidate's kind: a grasp's approach, or the action
-FEATURES = len(KINDS) + 9
+FEATURES = len(KINDS) + 14
 CHANNELS = 5 * len(CAMERAS)
-MODEL_VERSION = 1
+MODEL_VERSION = 2  # 2: the heading against the seen footprint (candidate_features)
 
 
 def kind(candidate: Candidate) -> str:
@@ -52,7 +52,10 @@ def candidate_features(candidate: Candidate, view: TargetView) -> np.ndarray:
     """(FEATURES,) float32: the kind (one-hot); the point's height over the target's lowest seen
     point and under its highest; its offset from the target's centre along and across the heading;
     the heading's world cos and sin, and its alignment with the direction from the robot to the
-    point; the target's seen extents; a push's or pull's distance."""
+    point; the seen footprint's major extent; a push's or pull's distance; then (version 2) the
+    heading against the footprint's major axis as cos and sin of twice the angle (a closing axis and
+    its reverse are one), the minor extent, and the footprint's span along the heading and across it
+    (what closing fingers meet, what they straddle)."""
     point, heading = _point_and_heading(candidate)
     t = view.target
     offset = point[:2] - t.centre[:2]
@@ -71,6 +74,11 @@ def candidate_features(candidate: Candidate, view: TargetView) -> np.ndarray:
         t.extent[0],
         candidate.params.get("distance", 0.0),
     ]
+    turn = np.arctan2(heading[1], heading[0]) - t.yaw
+    major, minor = t.extent
+    along, across = abs(np.cos(turn)), abs(np.sin(turn))
+    numbers += [np.cos(2 * turn), np.sin(2 * turn), minor, along * major + across * minor]
+    numbers += [across * major + along * minor]
     return np.asarray(one_hot + [float(v) for v in numbers], np.float32)
 
 

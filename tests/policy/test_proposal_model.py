@@ -17,6 +17,7 @@ from scenegen.policy.proposal_model import (
     CHANNELS,
     CROP,
     FEATURES,
+    MODEL_VERSION,
     ProposalModel,
     candidate_crop,
     candidate_features,
@@ -59,6 +60,22 @@ def _view(frames) -> TargetView:
     image, depth, mask = frames["front"]
     points = masked_points(depth, mask, CAMS["front"])
     return TargetView(estimate_target(points), np.zeros((0, 3)), target_points=points)
+
+
+def test_the_features_say_whether_closing_fingers_meet_the_narrow_side():
+    """For a 16 x 3 cm bar, whichever way it lies: fingers closing across it meet 3 cm of it and
+    straddle 16 (twice the footprint angle: -1); along it, the reverse (+1); a heading and its
+    reverse give the same numbers."""
+    for yaw in (0.0, np.pi / 3):
+        view = _view(_table_frames(bar_yaw=yaw))
+        rows = {}
+        for name, angle in (("along", yaw), ("across", yaw + np.pi / 2), ("back", yaw + 3 * np.pi / 2)):
+            heading = [np.cos(angle), np.sin(angle)]
+            c = Candidate("grasp", {"approach": "top", "position": [0.0, 0.0, 0.8], "heading": heading})
+            rows[name] = candidate_features(c, view)[-5:]  # cos 2a, sin 2a, minor, span along, across
+        assert np.all(np.abs(rows["across"][[0, 3, 4]] - [-1, 0.03, 0.16]) < [0.05, 0.01, 0.02]), rows
+        assert np.all(np.abs(rows["along"][[0, 3, 4]] - [1, 0.16, 0.03]) < [0.05, 0.02, 0.01]), rows
+        np.testing.assert_allclose(rows["back"], rows["across"], atol=1e-5)
 
 
 def test_projection_inverts_the_back_projection_of_depth():
@@ -135,6 +152,9 @@ def test_a_folder_that_is_not_a_proposal_model_is_refused_in_one_line(tmp_path: 
         ProposalModel.load(tmp_path)
     (tmp_path / "config.json").write_text('{"kind": "policy"}')
     (tmp_path / "model.safetensors").write_bytes(b"junk")
-    with pytest.raises(CheckpointError, match="not a proposal model of version 1") as info:
+    with pytest.raises(CheckpointError, match=f"not a proposal model of version {MODEL_VERSION}") as info:
         ProposalModel.load(tmp_path)
     assert "\n" not in str(info.value)
+    (tmp_path / "config.json").write_text('{"kind": "proposals", "version": 1, "width": 8}')
+    with pytest.raises(CheckpointError, match="version 1"):  # 13 numbers per candidate: not loaded
+        ProposalModel.load(tmp_path)
