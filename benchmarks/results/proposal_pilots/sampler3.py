@@ -13,10 +13,11 @@ from scenegen.manipulation.proposals import Candidate, TABLE_CLEARANCE, _unit
 from scenegen.perception.observation import observe
 
 n = int(sys.argv[1]) if len(sys.argv) > 1 else 20
+skip = int(sys.argv[2]) if len(sys.argv) > 2 else 0
 _init_worker()
 config, store, views = open_labels(Path("runs/proposals"))
 physics = physics_named(config.physics)
-scenes = list(label_layouts(["natural:600"], n)["natural:600"])
+scenes = list(label_layouts(["natural:600"], n)["natural:600"])[skip:]
 old = {}
 for line in open("runs/proposals/paths.jsonl"):
     r = json.loads(line)
