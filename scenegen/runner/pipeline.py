@@ -198,12 +198,7 @@ def write_timings(path: Path, run: dict, seconds: Counter, cpu: Counter) -> None
     resumed batch's earlier runs included), each run's own wall, workers, backend and proposals under
     ``runs``; ``workers``, ``backend`` and ``proposals_this_run`` are the last run's. A run killed
     before its end adds nothing. Not part of the deterministic output."""
-    try:
-        before = json.loads(path.read_text())
-        runs = list(before.get("runs") or [_as_run(before)])
-        stages, cpus = Counter(before.get("stages") or {}), Counter(before.get("cpu") or {})
-    except (OSError, ValueError, TypeError, AttributeError, KeyError):  # none yet, or not one this code wrote
-        runs, stages, cpus = [], Counter(), Counter()
+    runs, stages, cpus = _previous(path)
     if runs and not run["proposals"]:
         return  # a rerun of a complete batch: nothing done, nothing to add
     stages.update(seconds)
@@ -219,6 +214,21 @@ def write_timings(path: Path, run: dict, seconds: Counter, cpu: Counter) -> None
         "runs": runs,
     }
     atomic_write(path, json.dumps(timing, indent=1) + "\n")
+
+
+def _previous(path: Path) -> tuple[list[dict], Counter, Counter]:
+    """The runs and per-stage sums an earlier timings.json holds; none when there is none or it is not
+    one this code wrote (a file from before ``runs`` existed counts as its one run)."""
+    try:
+        before = json.loads(path.read_text())
+        runs = list(before.get("runs") or [_as_run(before)])
+        stages, cpus = Counter(before.get("stages") or {}), Counter(before.get("cpu") or {})
+        numbers = [r["wall"] for r in runs] + [*stages.values(), *cpus.values()]
+        if all(isinstance(x, int | float) and not isinstance(x, bool) for x in numbers):
+            return runs, stages, cpus
+    except (OSError, ValueError, TypeError, AttributeError, KeyError):
+        pass
+    return [], Counter(), Counter()
 
 
 def _as_run(timing: dict) -> dict:

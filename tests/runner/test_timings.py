@@ -33,6 +33,8 @@ def test_a_file_from_before_runs_existed_counts_as_one_run_and_a_broken_one_is_r
     timing = json.loads(path.read_text())
     assert timing["wall"] == 5.0 and timing["stages"] == {"settle": 4.0}
     assert [r["proposals"] for r in timing["runs"]] == [5, 2]
-    path.write_text("{torn")
-    write_timings(path, run(1.0, 2), Counter(settle=1.0), Counter())
-    assert json.loads(path.read_text())["wall"] == 1.0
+    odd = '{"wall": 1, "workers": 2, "backend": "local", "stages": {"settle": "x"}}'
+    for broken in ("{torn", odd, "[1]"):
+        path.write_text(broken)  # not one this code wrote: started anew, the batch's end not lost
+        write_timings(path, run(1.0, 2), Counter(settle=1.0), Counter())
+        assert json.loads(path.read_text())["stages"] == {"settle": 1.0}
