@@ -35,6 +35,7 @@ from scenegen.experiment.proposal_curves import (
     proposal_jobs,
     run_job,
 )
+from scenegen.experiment.proposal_labels import LABELS_FOLDER
 from scenegen.experiment.retrieval_curves import SEEDS, curve_results, curve_table, leads, plot_curves
 from scenegen.perception.retrieval import DEFAULT_HEAD
 from scenegen.store.batch import atomic_write
@@ -44,7 +45,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--labels", type=Path, default=Path("runs/proposals"), help="label folder")
+    parser.add_argument(
+        "--labels", type=Path, default=LABELS_FOLDER, help=f"label folder (default {LABELS_FOLDER})"
+    )
     parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="the head of the 'head' sight")
     parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
     parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from scenegen.cli.common import add_device_argument, device_error, fail, first_line, physics_from
 
+LABELS_FOLDER = Path("assets/proposal_labels")  # proposal_labels.LABELS_FOLDER (its import is slow)
+
 
 def add_commands(sub) -> None:
     top = sub.add_parser(
@@ -40,7 +42,10 @@ def add_commands(sub) -> None:
     )
     label.add_argument("--limit", type=int, help="only the first N layouts of each set (a pilot)")
     label.add_argument(
-        "--out", type=Path, default=Path("runs/proposals"), help="folder (default runs/proposals)"
+        "--out",
+        type=Path,
+        default=LABELS_FOLDER,
+        help=f"folder (default {LABELS_FOLDER}: the shipped labels)",
     )
     label.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     label.add_argument("--seed", type=int, default=0, help="the sampler's seed (default 0)")
@@ -50,7 +55,7 @@ def add_commands(sub) -> None:
         nargs=4,
         metavar=("TOP", "SIDE", "PUSH", "PULL"),
         help="candidates per first decision: grasps from above, from the side, pushes, pulls "
-        "(default 6 2 1 1: the labels issue 63 declares, sized to its budget)",
+        "(default 6 1 1 1: the labels issue 63 declares, sized to its budget)",
     )
     label.add_argument(
         "--physics", metavar="NAME", help="what the attempts are simulated under (default dt5)"
@@ -89,8 +94,8 @@ def _shared(parser, layouts: list[str]) -> None:
     parser.add_argument(
         "--labels",
         type=Path,
-        default=Path("runs/proposals"),
-        help="the label folder (default runs/proposals)",
+        default=LABELS_FOLDER,
+        help=f"the label folder (default {LABELS_FOLDER}: the shipped labels)",
     )
     parser.add_argument(
         "--retrieval",

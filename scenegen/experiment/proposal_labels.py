@@ -54,7 +54,7 @@ GRID = PlanGrid(metres=0.005, degrees=10.0)  # candidates closer than this are o
 # Issue 63's labels, sized to its 12 CPU-hour budget over LABEL_SETS' 1,456 layouts (measured under
 # dt5, docs/policy.md): a top grasp about 8 simulated seconds, a side grasp 16, a push 9, a pull 23, at
 # about 0.14 CPU-s a simulated second; the follow-ups run only where no first grasp lifted the target.
-SAMPLER = SamplerConfig(top=6, side=2, push=1, pull=1)
+SAMPLER = SamplerConfig(top=6, side=1, push=1, pull=1)  # side grasps: the costliest, 9 % lift (v2 pilot)
 FOLLOW = SamplerConfig(top=2, side=1, push=0, pull=0)
 
 
@@ -76,6 +76,9 @@ class LabelConfig:
 
 
 DEFAULT_LABELS = LabelConfig()
+# The labels issue 63 made, shipped (hours of CPU): labels.json, paths.jsonl and views/ are tracked,
+# the crops a training run caches under crops/ are not.
+LABELS_FOLDER = Path("assets/proposal_labels")
 SETTINGS = "labels.json"  # a label folder's LabelConfig
 
 

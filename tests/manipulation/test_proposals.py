@@ -100,6 +100,22 @@ def test_an_upright_and_a_toppled_mug_get_their_candidates_from_one_code_path(en
             assert points[:, 2].min() - 0.005 <= at[2] <= points[:, 2].max() + 0.005, c
 
 
+def test_a_top_grasp_closes_across_what_it_sees_from_both_sides(env):
+    """Its centre lies midway between the visible extremes along its closing axis, on a line of
+    visible points through it, for a standing can and a lying mug alike."""
+    config = SamplerConfig(top=16, side=0, push=0, pull=0)
+    for scene in (can_scene(), mug_scene(0)):
+        points = np.asarray(_view(env, scene).target_points)
+        for c in sample_candidates(_view(env, scene), np.random.default_rng(5), config):
+            axis, at = np.asarray(c.params["heading"]), np.asarray(c.params["position"])
+            across = np.array([-axis[1], axis[0]])
+            line = points[np.abs((points[:, :2] - at[:2]) @ across) < proposals.STRIP - 1e-9]
+            assert len(line) > 0, c
+            along = line[:, :2] @ axis
+            assert at[:2] @ axis == pytest.approx(0.5 * (along.min() + along.max()), abs=1e-6), c
+            assert along.max() - along.min() > 0.01  # the fingers meet a body, not a point
+
+
 def test_a_horizontal_hand_reaches_past_the_surface_it_sees_and_stays_clear_of_the_table(env):
     view = _view(env, can_scene())
     points = np.asarray(view.target_points)
