@@ -178,7 +178,12 @@ def proposals_label(args: argparse.Namespace) -> int:
         f"{len(scenes)} layouts ({', '.join(f'{k} {len(v)}' for k, v in sets.items())}), store {known} rows"
     )
     with tqdm(desc="label", unit=" jobs", disable=args.quiet) as bar:
-        cost = label_proposals(scenes, store, views, config, args.workers, lambda _: bar.update())
+
+        def progress(kind: str) -> None:  # the phase (propose, simulate) beside the count
+            bar.set_description(f"label: {kind}", refresh=False)
+            bar.update()
+
+        cost = label_proposals(scenes, store, views, config, args.workers, progress)
     per = cost.per_candidate()
     print(
         f"simulated {cost.simulated} candidates ({'-' if per is None else f'{per:.2f}'} CPU-s each, "

@@ -100,20 +100,37 @@ def test_an_upright_and_a_toppled_mug_get_their_candidates_from_one_code_path(en
             assert points[:, 2].min() - 0.005 <= at[2] <= points[:, 2].max() + 0.005, c
 
 
-def test_a_top_grasp_closes_across_what_it_sees_from_both_sides(env):
-    """Its centre lies midway between the visible extremes along its closing axis, on a line of
-    visible points through it, for a standing can and a lying mug alike."""
+def bowl_scene():
+    """A bowl standing upright: wider than the hand spans."""
+    bowl = place(catalog(), "bowl", "bowl", 0.1, 0.0, pose=1, yaw=0.3)
+    return proposal_scene(proposal([bowl], lighting=LIGHT), "bowl_upright")
+
+
+def test_a_top_grasp_closes_across_what_it_sees_from_both_sides_or_on_a_rim(env):
+    """Its centre lies on a line of visible points along its closing axis: midway between the line's
+    extremes where the hand spans them, EDGE_IN inside an end where it does not (a bowl's rim); the
+    grip site never under the line's mid-height. A standing can, a lying mug and a bowl alike."""
     config = SamplerConfig(top=16, side=0, push=0, pull=0)
-    for scene in (can_scene(), mug_scene(0)):
-        points = np.asarray(_view(env, scene).target_points)
-        for c in sample_candidates(_view(env, scene), np.random.default_rng(5), config):
+    spans = {"narrow": 0, "wide": 0}
+    for scene in (can_scene(), mug_scene(0), bowl_scene()):
+        view = _view(env, scene)
+        points = np.asarray(view.target_points)
+        for c in sample_candidates(view, np.random.default_rng(5), config):
             axis, at = np.asarray(c.params["heading"]), np.asarray(c.params["position"])
             across = np.array([-axis[1], axis[0]])
             line = points[np.abs((points[:, :2] - at[:2]) @ across) < proposals.STRIP - 1e-9]
             assert len(line) > 0, c
             along = line[:, :2] @ axis
-            assert at[:2] @ axis == pytest.approx(0.5 * (along.min() + along.max()), abs=1e-6), c
-            assert along.max() - along.min() > 0.01  # the fingers meet a body, not a point
+            lo, hi, u = along.min(), along.max(), at[:2] @ axis
+            if hi - lo <= proposals.MAX_GRASP_WIDTH:
+                spans["narrow"] += 1
+                assert u == pytest.approx(0.5 * (lo + hi), abs=1e-6), c
+            else:
+                spans["wide"] += 1
+                assert min(abs(u - lo), abs(hi - u)) == pytest.approx(proposals.EDGE_IN, abs=1e-6), c
+            heights = np.percentile(line[:, 2], [2, 98])
+            assert heights.mean() - 1e-9 <= at[2] <= heights[1] + 1e-9, c
+    assert spans["narrow"] > 0 and spans["wide"] > 0  # both rules ran
 
 
 def test_a_horizontal_hand_reaches_past_the_surface_it_sees_and_stays_clear_of_the_table(env):
