@@ -178,3 +178,9 @@ def training_conditions(
         # draw_spread samples (nulled with the rest, the model never saw it: followed in part, measured)
         c.spread = torch.where(draw(n) < p_spread_null, -1, c.spread)
     return c
+
+
+def null_rows(c: ConditionBatch, n_tasks: int, n_targets: int) -> torch.Tensor:
+    """(B,) bool: the rows of ``c`` whose condition is wholly null (task, target, every tag, pose):
+    what the model learns the unconditional distribution from."""
+    return (c.task == n_tasks) & (c.target == n_targets) & (c.tags == NULL).all(dim=1) & c.pose_null

@@ -28,7 +28,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from scenegen.assets.catalog import load_catalogs
 from scenegen.core.files import load_rows, sha256_file
-from scenegen.diffusion.data import batch_indices, bin_spread, layout_tensors, tasks, training_conditions
+from scenegen.diffusion.data import (
+    batch_indices,
+    bin_spread,
+    layout_tensors,
+    null_rows,
+    tasks,
+    training_conditions,
+)
 from scenegen.diffusion.encoding import ENCODING_VERSION, SceneEncoding
 from scenegen.diffusion.model import Denoiser, DenoiserConfig
 from scenegen.schema.condition import RARE_TAGS
@@ -170,7 +177,8 @@ def learning_rate(settings: TrainSettings, step: int) -> float:
 
 def loss_weights(data, encoding: SceneEncoding, settings: TrainSettings) -> tuple[torch.Tensor, torch.Tensor]:
     """Per layout (N,) and per scene-token column (scene_width,), the loss's weights: a layout holding
-    a rare tag counts 1 + ``tag_loss_weight``, the lighting columns ``light_loss_weight``."""
+    a rare tag counts 1 + ``tag_loss_weight`` (where its condition is not wholly null: the training
+    loop sets those rows to 1), the lighting columns ``light_loss_weight``."""
     rows = 1.0 + settings.tag_loss_weight * data.tags.any(dim=1).float()
     columns = torch.ones(encoding.scene_width)
     columns[encoding.light_cols] = settings.light_loss_weight
@@ -346,7 +354,11 @@ def train(
         v_o, v_s = model(xt_o, xt_s, t, c)  # v target: sqrt(a) noise - sqrt(1 - a) x_0
         target_o = a.sqrt()[:, None, None] * noise_o - (1 - a).sqrt()[:, None, None] * x_o
         target_s = a.sqrt()[:, None] * noise_s - (1 - a).sqrt()[:, None] * x_s
-        loss = weighted_loss(v_o - target_o, v_s - target_s, weights[rows].to(on), columns.to(on))
+        # a wholly null row counts 1 whatever its tags: the unconditional model learns the data's rates
+        row_weights = torch.where(
+            null_rows(c, denoiser_config.n_tasks, denoiser_config.n_targets).cpu(), 1.0, weights[rows]
+        )
+        loss = weighted_loss(v_o - target_o, v_s - target_s, row_weights.to(on), columns.to(on))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         for group in optimizer.param_groups:

@@ -260,3 +260,26 @@ def test_a_weighted_run_records_its_weights_and_trains(tmp_path: Path):
     assert saved["train"]["tag_loss_weight"] == 2.0 and saved["train"]["light_loss_weight"] == 4.0
     losses = config["losses"]
     assert np.mean(losses[-10:]) < np.mean(losses[:10])
+
+
+def test_a_wholly_null_row_is_told_apart_from_a_partly_null_one():
+    """The rows that teach the unconditional distribution (``null_rows``) count 1 in the loss
+    whatever their tags (train.py), so that tag weighting does not change the null condition's
+    tag rates; rows drawn by rare oversampling are never wholly null."""
+    from scenegen.assets.catalog import load_catalog
+    from scenegen.core.files import load_rows
+    from scenegen.diffusion.data import layout_tensors, null_rows, tasks, training_conditions
+    from scenegen.diffusion.encoding import SceneEncoding
+
+    encoding = SceneEncoding(load_catalog())
+    data = layout_tensors(load_rows(REFERENCE, "heldout")[:32], encoding)
+    n_tasks, n_targets = len(tasks()), len(encoding.catalog.categories)
+    rows = torch.arange(32)
+    rare = torch.zeros(32, dtype=torch.bool)
+    rare[:8] = True
+    g = torch.Generator().manual_seed(0)
+    every = training_conditions(data, rows, rare, n_tasks, n_targets, g, p_null=1.0)
+    assert null_rows(every, n_tasks, n_targets).tolist() == [False] * 8 + [True] * 24
+    partly = training_conditions(data, rows, rare, n_tasks, n_targets, g, p_null=0.0, p_field=0.3)
+    assert (partly.task == n_tasks).any() and partly.pose_null.any()  # some fields nulled, one by one
+    assert not null_rows(partly, n_tasks, n_targets).any()  # never all eleven at once here
