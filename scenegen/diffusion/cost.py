@@ -99,11 +99,15 @@ class SceneCost:
         shoulder: tuple[float, float, float] | None = None,
         camera: tuple[float, float, float] | None = None,
         arm: np.ndarray | None = None,
+        aim_lights: bool = False,
     ):
         """``camera``: the main camera's position (m), for soft ``occluded``; ``arm`` (G, 4): the
         arm's collision geoms at the request's pose as discs (x, y, lowest z, radius; m), for
-        ``arm_clearance``."""
+        ``arm_clearance``; ``aim_lights``: soft ``low_light`` moves where the lights point and stand,
+        not how bright they and the ambient are (their gradient stopped), as the reference darkens a
+        target (``proposer.light_projection: aim``)."""
         self.encoding = encoding
+        self.aim_lights = aim_lights
         # per asset a and pose column c: the disc radius, whether the pose is upright, and whether
         # the asset lacks a pose in that column (decoding never picks it)
         shape = (len(encoding.assets), encoding.max_poses)
@@ -266,7 +270,8 @@ class SceneCost:
         """Ambient + sum of unshadowed direct light on an upward surface at the flagged target (the
         predicate's formula without its shadow rays: an upper bound of what it measures)."""
         base = 3 * len(FURNITURE_KINDS)
-        irradiance = scene[:, base] * AMBIENT_SCALE + AMBIENT_CENTRE
+        strength = scene.detach() if self.aim_lights else scene  # brightness held, aim and place free
+        irradiance = strength[:, base] * AMBIENT_SCALE + AMBIENT_CENTRE
         point = torch.cat([(target_p[..., None] * xy).sum(1), (target_p * z).sum(1, keepdim=True)], -1)
         point = point + torch.tensor([0.0, 0.0, layout.TABLE_TOP_Z])
         for i in range(self.encoding.light_slots):
@@ -284,7 +289,8 @@ class SceneCost:
             falloff = torch.relu(cos_spot) ** SPOT_EXPONENT
             tint = v[:, 6] * TINT_SCALE
             colour = ((1 + tint).clamp(0, 1) + 1 + (1 - tint).clamp(0, 1)) / 3
-            intensity = (v[:, 7] * INTENSITY_SCALE + INTENSITY_CENTRE).clamp(0, 3)
+            held = strength[:, base + 1 + LIGHT_WIDTH * i : base + 1 + LIGHT_WIDTH * (i + 1)]
+            intensity = (held[:, 7] * INTENSITY_SCALE + INTENSITY_CENTRE).clamp(0, 3)
             incidence = torch.relu(to_light[:, 2])
             irradiance = irradiance + present * colour * intensity * inside * falloff * incidence
         return irradiance

@@ -78,6 +78,7 @@ class DiffusionSettings(AssetChoice):
         "project": False,
         "denoise": True,
         "anticipate": False,
+        "light_projection": "scale",
         "verifier": None,
         "verifier_sha256": None,
         "verifier_weight": 0.0,
@@ -125,6 +126,10 @@ class DiffusionSettings(AssetChoice):
     # project each proposal before its first check on what the proposer can measure itself: the
     # request's near_edge and clutter, the workspace (propose/project.py ``anticipated``)
     anticipate: bool = False
+    # how a required low_light is reached (repairs, anticipation, the soft cost): "scale" the whole
+    # lighting (generator v3's), "aim" the lights that reach the target away from it first, as the
+    # reference darkens a target, brightness kept (tag_projection.low_light_aimed, cost aim_lights)
+    light_projection: Literal["scale", "aim"] = "scale"
     # the learned verifier (diffusion/verifier.py: a checkpoint folder) whose log p(accepted) gradient
     # steers sampling beside the cost, with this weight; its weights pinned by sha256 when given
     verifier: str | None = None
@@ -249,7 +254,10 @@ class DiffusionProposer:
         weights = dict.fromkeys(required, s.request_cost)
         camera = s.cameras[0].position if s.soft_occluded else None  # `occluded` is seen from the main camera
         arm = None if self.arm is None or not s.arm_clearance else self.arm(robot_pose)
-        return SceneCost(self.encoding, required, weights, shoulder=SHOULDER, camera=camera, arm=arm)
+        aim = s.light_projection == "aim"
+        return SceneCost(
+            self.encoding, required, weights, shoulder=SHOULDER, camera=camera, arm=arm, aim_lights=aim
+        )
 
     def describe(self) -> dict:
         return {"kind": self.kind, "settings": self.settings.model_dump(mode="json")}
@@ -412,7 +420,9 @@ class DiffusionProposer:
             len(recent) == PROJECT_RUN and all(r.method == "project" for r in recent)
         ):
             return None
-        moved = project(parent, rejection, self.catalog, self.settings.max_shift)
+        moved = project(
+            parent, rejection, self.catalog, self.settings.max_shift, self.settings.light_projection
+        )
         if moved is None:
             return None
         proposal, names = moved
@@ -479,5 +489,5 @@ class DiffusionProposer:
         if s.anticipate:
             from scenegen.propose.project import anticipated
 
-            proposal = anticipated(proposal, self.catalog, s.max_shift)
+            proposal = anticipated(proposal, self.catalog, s.max_shift, s.light_projection)
         return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

@@ -52,16 +52,21 @@ _TAG = re.compile(r"(required|forbidden) (\w+) = (-?[\d.eE+-]+) \S+ \(threshold 
 
 
 def project(
-    proposal: SceneProposal, rejection: Rejection, catalog: Catalog, max_shift: float = 0.05
+    proposal: SceneProposal,
+    rejection: Rejection,
+    catalog: Catalog,
+    max_shift: float = 0.05,
+    light: str = "scale",
 ) -> tuple[SceneProposal, tuple[str, ...]] | None:
     """(``proposal`` moved by what ``rejection`` measured, the names moved), or None when the
     rejection has no projection (see the module docstring) or it would move nothing. An object on
-    the table or floor that the move took out of the workspace is put back inside it."""
-    made = _project(proposal, rejection, catalog, max_shift)
+    the table or floor that the move took out of the workspace is put back inside it. ``light``:
+    the low_light projection (``tp.steps``)."""
+    made = _project(proposal, rejection, catalog, max_shift, light)
     return None if made is None else in_workspace(*made)
 
 
-def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, max_shift: float):
+def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, max_shift: float, light: str):
     label = rejection.label
     if label not in PROJECTED:
         return None
@@ -92,7 +97,7 @@ def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, ma
         step = (abs(rejection.value or 0.0) + SLACK) * out / max(float(np.hypot(*out)), 1e-9)
         return tp.moved_under(proposal, base, -step if inward else step, tp.covering(proposal, catalog, base))
     if label == "condition_unmet":
-        return _tags(proposal, rejection, catalog)
+        return _tags(proposal, rejection, catalog, light)
     return None
 
 
@@ -123,14 +128,14 @@ def _away_from_arm(proposal: SceneProposal, name: str, rejection: Rejection):
     return moved(proposal, name, missing * out / max(float(np.hypot(*out)), 1e-9))
 
 
-def _tags(proposal: SceneProposal, rejection: Rejection, catalog: Catalog):
+def _tags(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, light: str = "scale"):
     """The request's missed tags, each projected by its measured value (tag_projection.py), in the
     order of ``tp.STEPS``; None when one of them has no projection."""
     tags = {m[1]: (m[0], float(m[2]), float(m[3])) for m in _TAG.findall(rejection.detail)}
     if not tags or set(tags) - set(tp.STEPS):
         return None
     out, names = proposal, ()
-    for tag, step in tp.STEPS.items():
+    for tag, step in tp.steps(light).items():
         if tag in tags:
             made = step(out, *tags[tag], catalog)
             if made is None:
@@ -139,14 +144,17 @@ def _tags(proposal: SceneProposal, rejection: Rejection, catalog: Catalog):
     return out, tuple(dict.fromkeys(names))
 
 
-def anticipated(proposal: SceneProposal, catalog: Catalog, max_shift: float = 0.05) -> SceneProposal:
+def anticipated(
+    proposal: SceneProposal, catalog: Catalog, max_shift: float = 0.05, light: str = "scale"
+) -> SceneProposal:
     """``proposal`` projected before any check on what the proposer can measure itself
     (``tp.before_check``: each asked tag that the scene as placed does not meet is projected by the
     same step as its repair), then every object on the table or floor into the workspace, and, if
     anything moved, overlaps pushed apart with the target held. ``occluded`` (rays through the
-    settled scene) is left to the model and the checks."""
+    settled scene) is left to the model and the checks. ``light``: the low_light projection
+    (``tp.steps``)."""
     out, names = proposal, []
-    for tag, step in tp.STEPS.items():
+    for tag, step in tp.steps(light).items():
         state = proposal.condition.tags.get(tag, "unspecified")
         measured = tp.before_check(out, tag, catalog) if state != "unspecified" else None
         if measured is None:

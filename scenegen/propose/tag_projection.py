@@ -196,6 +196,44 @@ def low_light(proposal: SceneProposal, kind: str, value: float, threshold: float
     return lit(proposal, aim / value), ("lights",)
 
 
+AIM_AWAY_DEG = 60.0  # a light turned off the target: its axis this far from the target (past the cutoff)
+
+
+def low_light_aimed(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
+    """Required: as the reference darkens a target, with its lights bright and aimed elsewhere: each
+    spot light whose cone holds the target's top is turned ``AIM_AWAY_DEG`` off it (away from the
+    target, about its foot), its intensity kept; only if the bound still lies above SLACK_LIGHT
+    below the threshold is the lighting then scaled as :func:`low_light` does. Forbidden: as
+    :func:`low_light` (recipe key ``proposer.light_projection: aim``)."""
+    if kind != "required" or value <= 0:
+        return low_light(proposal, kind, value, threshold, catalog)
+    point = _target_top(proposal, catalog)
+    cutoff = np.cos(np.radians(SPOT_CUTOFF_DEG))
+    lights = []
+    for light in proposal.lighting.lights:
+        toward = point - np.asarray(light.position)
+        toward /= np.linalg.norm(toward)
+        axis = np.asarray(light.direction) / np.linalg.norm(light.direction)
+        if float(axis @ toward) < cutoff:
+            lights.append(light)
+            continue
+        away = np.array([-toward[0], -toward[1], 0.0])  # horizontally from the target to the light
+        if np.linalg.norm(away) < 1e-6:
+            away = np.array([1.0, 0.0, 0.0])
+        side = away - (away @ toward) * toward
+        side /= np.linalg.norm(side)
+        angle = np.radians(AIM_AWAY_DEG)
+        turned = np.cos(angle) * toward + np.sin(angle) * side
+        lights.append(light.model_copy(update={"direction": tuple(round(float(v), 6) for v in turned)}))
+    lighting = proposal.lighting.model_copy(update={"lights": tuple(lights)})
+    out = proposal.model_copy(update={"lighting": lighting})
+    aim = threshold * (1 - SLACK_LIGHT)
+    bound = irradiance_bound(out, catalog)
+    if bound <= aim:
+        return out, ("lights",)
+    return lit(out, aim / bound), ("lights",)
+
+
 def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
     """The scene's ambient light and every light's intensity scaled by ``factor``."""
     lighting = proposal.lighting
@@ -365,12 +403,17 @@ def under_overhang(proposal: SceneProposal, kind: str, value: float, threshold: 
 SPOT_CUTOFF_DEG, SPOT_EXPONENT = 45.0, 10.0
 
 
+def _target_top(proposal: SceneProposal, catalog: Catalog) -> np.ndarray:
+    """The point the low_light predicate measures at: 1 mm over the target's top as placed."""
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    pts = _placed_vertices(catalog, target)
+    return np.array([pts[:, 0].mean(), pts[:, 1].mean(), pts[:, 2].max() + 1e-3])
+
+
 def irradiance_bound(proposal: SceneProposal, catalog: Catalog) -> float:
     """The low_light predicate's irradiance at the target's top as placed, with no light shadowed: an
     upper bound of what the predicate measures (a shadow only takes light away)."""
-    target = next(o for o in proposal.objects if o.name == proposal.target)
-    pts = _placed_vertices(catalog, target)
-    point = np.array([pts[:, 0].mean(), pts[:, 1].mean(), pts[:, 2].max() + 1e-3])
+    point = _target_top(proposal, catalog)
     total = float(np.mean(proposal.lighting.ambient))
     for light in proposal.lighting.lights:
         to_light = np.asarray(light.position) - point
@@ -454,3 +497,11 @@ STEPS = {
     "occluded": occluded,
     "low_light": low_light,
 }
+
+
+def steps(light_projection: str = "scale") -> dict:
+    """:data:`STEPS` with the low_light projection a recipe names (``scale``: the whole lighting
+    scaled, generator v3's; ``aim``: :func:`low_light_aimed`)."""
+    if light_projection not in ("scale", "aim"):
+        raise ValueError(f"light_projection {light_projection!r}: use scale or aim")
+    return STEPS if light_projection == "scale" else {**STEPS, "low_light": low_light_aimed}

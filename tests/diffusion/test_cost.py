@@ -12,7 +12,7 @@ import torch
 from scenegen.analysis.realism import load_rows
 from scenegen.assets.catalog import load_catalog
 from scenegen.diffusion.cost import SceneCost, disc_radius
-from scenegen.diffusion.encoding import XY_SCALE, SceneEncoding
+from scenegen.diffusion.encoding import FURNITURE_KINDS, LIGHT_WIDTH, XY_SCALE, SceneEncoding
 from scenegen.diffusion.model import ConditionBatch, Denoiser, DenoiserConfig
 from scenegen.diffusion.sample import sample
 
@@ -89,6 +89,26 @@ def test_soft_low_light_is_the_predicates_formula_without_shadows(encoding, toke
     measured = torch.tensor([r["value_low_light"] for r in rows], dtype=torch.float32)
     assert (bound >= measured - 0.05).float().mean() > 0.97
     assert ((bound - measured).abs() < 0.02).float().mean() > 0.5
+
+
+def test_aimed_soft_low_light_moves_where_lights_point_not_how_bright_they_are(encoding, tokens):
+    """``aim_lights`` (``proposer.light_projection: aim``): the same bound, but its gradient reaches
+    no ambient or intensity number, only where the lights point and stand; without it, both."""
+    rows, objects, scene = tokens
+    lit = [i for i, r in enumerate(rows) if not r["tag_low_light"]][:32]
+    base = 3 * len(FURNITURE_KINDS)  # the scene token: furniture, then ambient, then each light's slot
+    brightness = [base] + [base + 1 + LIGHT_WIDTH * i + 7 for i in range(encoding.light_slots)]
+    aim = [base + 1 + LIGHT_WIDTH * i + k for i in range(encoding.light_slots) for k in (4, 5)]
+    grads = {}
+    for aimed in (False, True):
+        s = scene[lit].clone().requires_grad_(True)
+        cost = SceneCost(encoding, ("low_light",), aim_lights=aimed)
+        cost(objects[lit], s).sum().backward()
+        grads[aimed] = s.grad
+    assert grads[False][:, brightness].abs().sum() > 0 and grads[True][:, brightness].abs().sum() == 0
+    assert grads[True][:, aim].abs().sum() > 0
+    plain = SceneCost(encoding, ("low_light",))(objects[lit], scene[lit])
+    assert torch.equal(SceneCost(encoding, ("low_light",), aim_lights=True)(objects[lit], scene[lit]), plain)
 
 
 def test_cost_guidance_lowers_the_cost(encoding):

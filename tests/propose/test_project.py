@@ -133,6 +133,39 @@ def test_a_missed_low_light_scales_the_lights_below_the_threshold(accepted, conf
     )
 
 
+def test_an_aimed_low_light_turns_the_lights_off_the_target_and_keeps_their_strength(accepted, config):
+    """``proposer.light_projection: aim``: the lights whose cones hold the target are turned off it
+    (intensities and ambient kept where turning is enough, as the reference darkens a target), and
+    the real predicate then holds on the settled scene."""
+    lights = tuple(  # every light aimed straight at the mug: turning, not dimming, must do it
+        light.model_copy(update={"direction": tuple(_toward(light.position, accepted, config))})
+        for light in accepted.lighting.lights
+    )
+    lit = accepted.model_copy(update={"lighting": accepted.lighting.model_copy(update={"lights": lights})})
+    first = outcome(lit, config, low_light="required")
+    assert first.rejection is not None and "low_light" in first.rejection.detail
+    fixed, names = proj.project(lit, first.rejection, config.catalog(), light="aim")
+    assert names == ("lights",) and fixed.objects == lit.objects
+    assert sum(lit.lighting.ambient) / 3 < 0.9 * tp.LOW_LIGHT  # the ambient alone is dark enough here
+    assert fixed.lighting.ambient == lit.lighting.ambient
+    assert [x.intensity for x in fixed.lighting.lights] == [x.intensity for x in lit.lighting.lights]
+    assert all(
+        x.direction != y.direction for x, y in zip(fixed.lighting.lights, lit.lighting.lights, strict=True)
+    )
+    after = outcome(fixed, config, low_light="required")
+    assert after.record is not None, after.rejection.detail
+    assert after.record.tags["low_light"].holds
+    with pytest.raises(ValueError, match="light_projection 'dim'"):
+        tp.steps("dim")
+
+
+def _toward(position, proposal, config):
+    top = tp._target_top(proposal, config.catalog())
+    d = [t - p for t, p in zip(top, position, strict=True)]
+    norm = math.sqrt(sum(v * v for v in d))
+    return [round(v / norm, 6) for v in d]
+
+
 def test_a_missed_clutter_brings_the_nearest_others_in(accepted, config):
     first = outcome(accepted, config, clutter="required")
     if first.record is not None:
