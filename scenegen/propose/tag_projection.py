@@ -207,31 +207,24 @@ def low_light_aimed(proposal: SceneProposal, kind: str, value: float, threshold:
     :func:`low_light` (recipe key ``proposer.light_projection: aim``)."""
     if kind != "required" or value <= 0:
         return low_light(proposal, kind, value, threshold, catalog)
-    point = _target_top(proposal, catalog)
-    cutoff = np.cos(np.radians(SPOT_CUTOFF_DEG))
+    point, angle = _target_top(proposal, catalog), np.radians(AIM_AWAY_DEG)
+    cos_cutoff = np.cos(np.radians(SPOT_CUTOFF_DEG))
     lights = []
     for light in proposal.lighting.lights:
         toward = point - np.asarray(light.position)
         toward /= np.linalg.norm(toward)
-        axis = np.asarray(light.direction) / np.linalg.norm(light.direction)
-        if float(axis @ toward) < cutoff:
-            lights.append(light)
+        if float(np.asarray(light.direction) @ toward) < cos_cutoff * np.linalg.norm(light.direction):
+            lights.append(light)  # its cone misses the target already
             continue
-        away = np.array([-toward[0], -toward[1], 0.0])  # horizontally from the target to the light
-        if np.linalg.norm(away) < 1e-6:
-            away = np.array([1.0, 0.0, 0.0])
+        flat = np.hypot(*toward[:2]) > 1e-6  # horizontally from the target to the light, or any way
+        away = np.array([-toward[0], -toward[1], 0.0]) if flat else np.array([1.0, 0.0, 0.0])
         side = away - (away @ toward) * toward
-        side /= np.linalg.norm(side)
-        angle = np.radians(AIM_AWAY_DEG)
-        turned = np.cos(angle) * toward + np.sin(angle) * side
+        turned = np.cos(angle) * toward + np.sin(angle) * side / np.linalg.norm(side)
         lights.append(light.model_copy(update={"direction": tuple(round(float(v), 6) for v in turned)}))
     lighting = proposal.lighting.model_copy(update={"lights": tuple(lights)})
     out = proposal.model_copy(update={"lighting": lighting})
-    aim = threshold * (1 - SLACK_LIGHT)
-    bound = irradiance_bound(out, catalog)
-    if bound <= aim:
-        return out, ("lights",)
-    return lit(out, aim / bound), ("lights",)
+    aim, bound = threshold * (1 - SLACK_LIGHT), irradiance_bound(out, catalog)
+    return (out if bound <= aim else lit(out, aim / bound)), ("lights",)
 
 
 def lit(proposal: SceneProposal, factor: float) -> SceneProposal:
@@ -500,8 +493,7 @@ STEPS = {
 
 
 def steps(light_projection: str = "scale") -> dict:
-    """:data:`STEPS` with the low_light projection a recipe names (``scale``: the whole lighting
-    scaled, generator v3's; ``aim``: :func:`low_light_aimed`)."""
+    """:data:`STEPS` with the low_light projection a recipe names (``scale`` or ``aim``)."""
     if light_projection not in ("scale", "aim"):
         raise ValueError(f"light_projection {light_projection!r}: use scale or aim")
     return STEPS if light_projection == "scale" else {**STEPS, "low_light": low_light_aimed}
