@@ -10,7 +10,7 @@ from pathlib import Path
 
 from scenegen.cli.common import add_device_argument, device_error, fail, first_line, physics_from
 
-LABELS_FOLDER = Path("assets/proposal_labels")  # proposal_labels.LABELS_FOLDER (its import is slow)
+LABELS_FOLDER = Path("runs/proposal_labels")  # proposal_labels.LABELS_FOLDER (its import is slow)
 
 
 def add_commands(sub) -> None:
@@ -45,7 +45,7 @@ def add_commands(sub) -> None:
         "--out",
         type=Path,
         default=LABELS_FOLDER,
-        help=f"folder (default {LABELS_FOLDER}: the shipped labels)",
+        help=f"folder (default {LABELS_FOLDER}; resumable)",
     )
     label.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     label.add_argument("--seed", type=int, default=0, help="the sampler's seed (default 0)")
@@ -95,7 +95,7 @@ def _shared(parser, layouts: list[str]) -> None:
         "--labels",
         type=Path,
         default=LABELS_FOLDER,
-        help=f"the label folder (default {LABELS_FOLDER}: the shipped labels)",
+        help=f"the label folder (default {LABELS_FOLDER}; resumable)",
     )
     parser.add_argument(
         "--retrieval",

@@ -76,9 +76,9 @@ class LabelConfig:
 
 
 DEFAULT_LABELS = LabelConfig()
-# The labels issue 63 made, shipped (hours of CPU): labels.json, paths.jsonl and views/ are tracked,
-# the crops a training run caches under crops/ are not.
-LABELS_FOLDER = Path("assets/proposal_labels")
+# The default label folder (generated data: not tracked; `scenegen proposals label` remakes it,
+# resumable). A folder of another sampler version is refused, so the name changes with none.
+LABELS_FOLDER = Path("runs/proposal_labels")
 SETTINGS = "labels.json"  # a label folder's LabelConfig
 
 
