@@ -25,16 +25,25 @@ import torch
 from torch import nn
 
 from scenegen.core.rotations import camera_rotation
-from scenegen.manipulation.proposals import Candidate
+from scenegen.manipulation.proposals import STRIP, Candidate
 from scenegen.perception.observation import CAMERAS, TargetView
 from scenegen.schema.scene import Camera
 
 CROP = 48  # px of the crop's side, at the cameras' 320 x 240
 DEPTH_RANGE = 0.10  # m either side of the candidate point's depth the crop's depth channel spans
 KINDS = ("top", "side", "push", "pull")  # a candidate's kind: a grasp's approach, or the action
-FEATURES = len(KINDS) + 14
+FEATURES = len(KINDS) + 20
 CHANNELS = 5 * len(CAMERAS)
-MODEL_VERSION = 2  # 2: the heading against the seen footprint (candidate_features)
+MODEL_VERSION = 3  # 2: the heading against the seen footprint; 3: the fingers' line (candidate_features)
+FINGER_STRIP = 0.015  # m either side of the fingers' line, across the heading
+FINGER_HEIGHT = 0.04  # m over the grip site the fingers reach; above it the hand, which ``clear over`` sees
+CLEAR_CAP = 0.10  # m: a clearance this large or more counts as free
+# Training (version 3; the pilot in docs/policy.md): dropout before the head, weight decay, and a top
+# grasp seen also with its heading reversed (a parallel gripper closing the other way round: the
+# crop turned 180 degrees, the heading-signed numbers negated)
+DROPOUT = 0.3
+WEIGHT_DECAY = 0.05
+SIGNED = (6, 7, 8, 9, 10, 19)  # offsets along and across, cos, sin, reach alignment, the line's offset
 
 
 def kind(candidate: Candidate) -> str:
@@ -55,7 +64,8 @@ def candidate_features(candidate: Candidate, view: TargetView) -> np.ndarray:
     point; the seen footprint's major extent; a push's or pull's distance; then (version 2) the
     heading against the footprint's major axis as cos and sin of twice the angle (a closing axis and
     its reverse are one), the minor extent, and the footprint's span along the heading and across it
-    (what closing fingers meet, what they straddle)."""
+    (what closing fingers meet, what they straddle); then (version 3) the fingers' line
+    (:func:`_finger_line`)."""
     point, heading = _point_and_heading(candidate)
     t = view.target
     offset = point[:2] - t.centre[:2]
@@ -79,7 +89,33 @@ def candidate_features(candidate: Candidate, view: TargetView) -> np.ndarray:
     along, across = abs(np.cos(turn)), abs(np.sin(turn))
     numbers += [np.cos(2 * turn), np.sin(2 * turn), minor, along * major + across * minor]
     numbers += [across * major + along * minor]
+    numbers += _finger_line(point, heading, view)
     return np.asarray(one_hot + [float(v) for v in numbers], np.float32)
+
+
+def _finger_line(point: np.ndarray, heading: np.ndarray, view: TargetView) -> list[float]:
+    """(version 3) What the fingers meet on their line through the grip site along the heading: the
+    seen target's span on that line and the grip site's offset from its middle; the line's top and
+    bottom against the grip height; and the clearance from anything else seen (other objects,
+    furniture) from 2 cm under the grip height: along the line up to the fingers' height, and over
+    the grip site (``CLEAR_CAP`` when free). No look at what the target is."""
+    across = np.array([-heading[1], heading[0]])
+    points = np.asarray(view.target_points if view.target_points is not None else np.zeros((0, 3)), float)
+    near = points[np.abs((points[:, :2] - point[:2]) @ across) < STRIP] if len(points) else points
+    if len(near):
+        along = (near[:, :2] - point[:2]) @ heading
+        line = [along.max() - along.min(), 0.5 * (along.max() + along.min())]
+        line += [np.percentile(near[:, 2], 98) - point[2], point[2] - np.percentile(near[:, 2], 2)]
+    else:
+        line = [0.0, 0.0, 0.0, 0.0]
+    others = np.asarray(view.others, float).reshape(-1, 3)
+    high = others[others[:, 2] > point[2] - 0.02]
+    rel = high[:, :2] - point[:2]
+    on_line = (np.abs(rel @ across) < FINGER_STRIP) & (high[:, 2] < point[2] + FINGER_HEIGHT)
+    clear_along = np.abs(rel[on_line] @ heading).min(initial=CLEAR_CAP)
+    over = high[np.linalg.norm(rel, axis=1) < FINGER_STRIP]
+    clear_over = (over[:, 2] - point[2]).min(initial=CLEAR_CAP)
+    return [*line, min(clear_along, CLEAR_CAP), min(clear_over, CLEAR_CAP)]
 
 
 def project(cam: Camera, points: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -146,7 +182,10 @@ class ProposalNet(nn.Module):
             nn.Flatten(),
         )
         self.head = nn.Sequential(
-            nn.Linear(2 * width + FEATURES, 4 * width), nn.ReLU(), nn.Linear(4 * width, 1)
+            nn.Dropout(DROPOUT),
+            nn.Linear(2 * width + FEATURES, 4 * width),
+            nn.ReLU(),
+            nn.Linear(4 * width, 1),
         )
 
     def forward(self, crops: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
@@ -230,21 +269,28 @@ def train_model(
     config: dict | None = None,
 ) -> ProposalModel:
     """A model trained on (crops, features) -> labels (0/1) by binary cross-entropy, the positives
-    weighted by the negatives' share (most candidates fail); batches drawn from ``seed``'s stream on
-    the CPU, so a device changes no draw."""
+    weighted by the negatives' share (most candidates fail), with ``WEIGHT_DECAY``, ``DROPOUT`` and
+    each top grasp seen half the time with its heading reversed (``SIGNED``); batches and flips drawn
+    from ``seed``'s stream on the CPU, so a device changes no draw."""
     torch.manual_seed(seed)
     net = ProposalNet(width).to(device)
     labels = np.asarray(labels, np.float32)
     positives = max(float(labels.sum()), 1.0)
     weight = torch.tensor((len(labels) - positives) / positives, device=device).clamp(1.0, 20.0)
-    optimiser = torch.optim.Adam(net.parameters(), lr=1e-3)
+    optimiser = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=WEIGHT_DECAY)
     loss_fn = nn.BCEWithLogitsLoss(pos_weight=weight)
     generator = torch.Generator().manual_seed(seed)
     x, f, y = torch.from_numpy(crops), torch.from_numpy(features), torch.from_numpy(labels)
+    sign = torch.ones(FEATURES)
+    sign[list(SIGNED)] = -1.0
     net.train()
     for _ in range(steps):
         index = torch.randint(len(y), (batch,), generator=generator)
-        loss = loss_fn(net(x[index].to(device), f[index].to(device)), y[index].to(device))
+        xb, fb = x[index], f[index]
+        turn = (torch.rand(batch, generator=generator) < 0.5) & (fb[:, KINDS.index("top")] > 0.5)
+        xb = torch.where(turn[:, None, None, None], xb.flip(2, 3), xb)
+        fb = torch.where(turn[:, None], fb * sign, fb)
+        loss = loss_fn(net(xb.to(device), fb.to(device)), y[index].to(device))
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

@@ -72,10 +72,46 @@ def test_the_features_say_whether_closing_fingers_meet_the_narrow_side():
         for name, angle in (("along", yaw), ("across", yaw + np.pi / 2), ("back", yaw + 3 * np.pi / 2)):
             heading = [np.cos(angle), np.sin(angle)]
             c = Candidate("grasp", {"approach": "top", "position": [0.0, 0.0, 0.8], "heading": heading})
-            rows[name] = candidate_features(c, view)[-5:]  # cos 2a, sin 2a, minor, span along, across
+            rows[name] = candidate_features(c, view)[-11:-6]  # cos 2a, sin 2a, minor, span along, across
         assert np.all(np.abs(rows["across"][[0, 3, 4]] - [-1, 0.03, 0.16]) < [0.05, 0.01, 0.02]), rows
         assert np.all(np.abs(rows["along"][[0, 3, 4]] - [1, 0.16, 0.03]) < [0.05, 0.02, 0.01]), rows
         np.testing.assert_allclose(rows["back"], rows["across"], atol=1e-5)
+
+
+def test_the_finger_line_features_measure_the_span_met_and_what_stands_in_the_way():
+    """Version 3: on a 16 x 3 cm bar, fingers closing across it through its middle meet 3 cm of it,
+    centred; along it, 16 cm; nothing else seen: both clearances at the cap; a neighbour's points on
+    the fingers' line 4 cm away and a shelf 5 cm over the grip site are measured as such, a point
+    beside the line or under the grip height is not."""
+    from scenegen.policy.proposal_model import CLEAR_CAP
+
+    yaw = np.pi / 5
+    view = _view(_table_frames(bar_yaw=yaw))
+
+    def line(angle: float, others=()):
+        c = Candidate(
+            "grasp",
+            {"approach": "top", "position": [0.0, 0.0, 0.8], "heading": [np.cos(angle), np.sin(angle)]},
+        )
+        seen = TargetView(
+            view.target, np.asarray(others, float).reshape(-1, 3), target_points=view.target_points
+        )
+        return candidate_features(c, seen)[-6:]  # span, offset, top - z, z - bottom, clear along, over
+
+    across, along = line(yaw + np.pi / 2), line(yaw)
+    assert abs(across[0] - 0.03) < 0.01 and abs(across[1]) < 0.005, across
+    assert abs(along[0] - 0.16) < 0.02 and abs(along[1]) < 0.01, along
+    np.testing.assert_allclose(across[4:], [CLEAR_CAP, CLEAR_CAP], atol=1e-6)
+    heading = np.array([np.cos(yaw + np.pi / 2), np.sin(yaw + np.pi / 2)])
+    beside = np.array([-heading[1], heading[0]]) * 0.05
+    others = [
+        [*(heading * 0.04), 0.81],  # on the fingers' line, 4 cm out
+        [*(heading * 0.02 + beside), 0.81],  # 5 cm beside the line: not in the way
+        [*(heading * 0.01), 0.70],  # under the grip height: not in the way
+        [0.0, 0.0, 0.85],  # over the grip site
+    ]
+    crowded = line(yaw + np.pi / 2, others)
+    np.testing.assert_allclose(crowded[4:], [0.04, 0.05], atol=1e-6)
 
 
 def test_projection_inverts_the_back_projection_of_depth():
@@ -132,7 +168,7 @@ def _examples(n: int, seed: int):
 def test_a_small_model_learns_which_candidates_close_across_the_target(tmp_path: Path):
     crops, features, labels = _examples(600, seed=0)
     assert features.shape == (600, FEATURES) and 0.05 < labels.mean() < 0.5
-    model = train_model(crops, features, labels, steps=600, batch=64, width=8, seed=0)
+    model = train_model(crops, features, labels, steps=1000, batch=64, width=8, seed=0)
     test_crops, test_features, test_labels = _examples(200, seed=1)
     scores = model.scores(test_crops, test_features)
     positive, negative = scores[test_labels == 1], scores[test_labels == 0]
@@ -143,7 +179,7 @@ def test_a_small_model_learns_which_candidates_close_across_the_target(tmp_path:
     model.save(tmp_path / "m")
     again = ProposalModel.load(tmp_path / "m")
     np.testing.assert_allclose(again.scores(test_crops, test_features), scores, rtol=1e-6)
-    same = train_model(crops, features, labels, steps=600, batch=64, width=8, seed=0)
+    same = train_model(crops, features, labels, steps=1000, batch=64, width=8, seed=0)
     np.testing.assert_array_equal(same.scores(test_crops, test_features), scores)
 
 
