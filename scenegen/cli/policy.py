@@ -134,7 +134,15 @@ def _add_policy(sub) -> None:
         description="Observe, choose, execute, re-observe, up to 3 attempts per scene; one episode folder "
         "per scene under --out and summary.json (success rate, failure labels).",
     )
-    ev.add_argument("--checkpoint", type=Path, required=True)
+    ev.add_argument("--checkpoint", type=Path, help="the chooser over the hand planners (a policy folder)")
+    ev.add_argument(
+        "--proposals",
+        type=Path,
+        metavar="MODEL",
+        help="act by a proposal model instead of --checkpoint (scenegen proposals train; e.g. "
+        "assets/proposals/natural600): candidates sampled from what the robot sees, the best executed; "
+        "writes episodes.jsonl and summary.json",
+    )
     ev.add_argument("--scenes", type=Path, required=True, help="batch directory or reference table")
     ev.add_argument("--split", default="heldout", help="a table's split (default heldout)")
     ev.add_argument("--n", type=int, default=50, help="scenes to run (default 50)")
@@ -273,8 +281,37 @@ def policy_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _eval_proposals(args: argparse.Namespace, scenes) -> int:
+    from scenegen.core.files import CheckpointError
+    from scenegen.experiment.proposal_loop import evaluate_scenes
+    from scenegen.policy.proposal_model import ProposalModel
+
+    if args.labels is not None:
+        return fail("--labels: the proposal model's episodes have no grasp-choice failures to label")
+    try:
+        ProposalModel.load(args.proposals)
+        physics = physics_from(args)
+    except (CheckpointError, OSError, ValueError) as exc:
+        return fail(first_line(exc))
+    if not scenes:
+        return fail("no feasible scene to evaluate (targets on the floor are out of reach)")
+    retrieval = None if str(args.retrieval) == "oracle" else Path(args.retrieval)
+    summary = evaluate_scenes(args.proposals, scenes, args.out, retrieval, physics, not args.quiet)
+    print(
+        f"{summary['episodes']} episodes ({summary['perception']} target not seen), "
+        f"success {summary['success_rate']:.2%}, first attempt {summary['first_attempt_rate']:.2%} "
+        f"-> {args.out}"
+    )
+    return 0
+
+
 def policy_eval(args: argparse.Namespace) -> int:
     from scenegen.env.scenes import load_scenes
+
+    if (args.checkpoint is None) == (args.proposals is None):
+        return fail(
+            "policy eval: give --checkpoint (the chooser) or --proposals (a proposal model), one of them"
+        )
     from scenegen.manipulation.task import feasible
     from scenegen.policy.evaluate import evaluate
 
@@ -285,6 +322,8 @@ def policy_eval(args: argparse.Namespace) -> int:
 
             scenes = outside_panels(scenes)
         scenes = [s for s in scenes if feasible(s)]  # on_floor targets are out of reach: not counted
+        if args.proposals is not None:
+            return _eval_proposals(args, scenes[: args.n])
         summary = evaluate(
             args.checkpoint,
             scenes[: args.n],

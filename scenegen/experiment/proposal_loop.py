@@ -231,3 +231,44 @@ def compare_episodes(first: Sequence[dict], second: Sequence[dict], replicates: 
                 "difference": difference(x, y, replicates, seed=len(keys)),
             }
     return out
+
+
+def evaluate_scenes(
+    model: Path, scenes: Sequence[EnvScene], out: Path, retrieval: Path | None, physics: str, progress: bool
+) -> dict:
+    """`scenegen policy eval --proposals`: one episode of the proposal model at ``model`` on each of
+    ``scenes``, seen through ``retrieval`` (None: the simulator's masks), under ``physics``. Writes
+    ``out/episodes.jsonl`` (one record each, as ``perception-gap --proposals`` writes them) and
+    ``out/summary.json``; the sequence and decision stores beside them make a rerun decide and
+    simulate nothing twice."""
+    import json
+    from collections import Counter
+
+    from tqdm import tqdm
+
+    from scenegen.core.files import folder_sha256
+    from scenegen.store.batch import atomic_write
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    store, observations = PathStore(out / "paths.jsonl"), ObservationStore(out / "observations")
+    with tqdm(desc="proposals", unit=" jobs", disable=not progress) as bar, Workers(1, physics) as pool:
+        records = evaluate_proposals(
+            model, scenes, store, observations, pool, retrieval, progress=lambda _: bar.update()
+        )
+    atomic_write(out / "episodes.jsonl", "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+    n = len(records)
+    summary = {
+        "policy": "proposals",
+        "proposals": str(model),
+        "proposals_sha256": folder_sha256(Path(model)),
+        "retrieval": str(retrieval) if retrieval is not None else "oracle",
+        "physics": physics,
+        "episodes": n,
+        "success_rate": sum(r["success"] for r in records) / max(n, 1),
+        "first_attempt_rate": sum(r["first_attempt"] for r in records) / max(n, 1),
+        "failures": dict(Counter(r["failure"] for r in records if not r["success"])),
+        "perception": sum(r["failure"] == "target_not_seen" for r in records),
+    }
+    atomic_write(out / "summary.json", json.dumps(summary, indent=1) + "\n")
+    return summary

@@ -95,3 +95,35 @@ def test_perception_gap_takes_candidates_only_with_a_proposal_model(tmp_path: Pa
     err = capsys.readouterr().err
     assert "--candidates" in err and "with --proposals" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "gap").exists()
+
+
+def test_policy_eval_acts_by_the_committed_proposal_model_and_reruns_free(tmp_path: Path, capsys):
+    """`scenegen policy eval --proposals`: the committed model on one reference scene through the
+    simulator's masks writes its episode and summary; a rerun decides and simulates nothing new
+    (the stores beside them) and says the same; giving both or neither action side is refused."""
+    from scenegen.paths import ASSETS_DIR
+
+    model = ASSETS_DIR / "proposals" / "natural600"
+    out = tmp_path / "eval"
+    argv = ["policy", "eval", "--proposals", str(model), "--scenes", "assets/reference/reference.parquet"]
+    argv += ["--n", "1", "--outside-panels", "--retrieval", "oracle", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    episode = json.loads((out / "episodes.jsonl").read_text())
+    assert summary["episodes"] == 1 and summary["policy"] == "proposals" and summary["retrieval"] == "oracle"
+    assert (
+        episode["policy"] == "proposals"
+        and episode["actions"]
+        and summary["success_rate"] == episode["success"]
+    )
+    rows = (out / "paths.jsonl").read_text()
+    assert main(argv) == 0
+    assert (out / "paths.jsonl").read_text() == rows and json.loads(
+        (out / "summary.json").read_text()
+    ) == summary
+    capsys.readouterr()
+    for extra in (["--checkpoint", "assets/policy/baseline"], []):
+        both = [a for a in argv if a not in ("--proposals", str(model))] if not extra else [*argv, *extra]
+        assert main([*both[:2], *both[2:]]) == 2
+        err = capsys.readouterr().err
+        assert "one of them" in err and len(err.strip().splitlines()) == 1
