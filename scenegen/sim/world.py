@@ -58,12 +58,19 @@ VISUAL_GROUP, COLLISION_GROUP = 1, 3
 FLOORS = ("plane", "box")
 FLOOR_BOX = "floor_support"
 FLOOR_BOX_HALF = (3.0, 3.0, 0.05)  # m: the plane's extent, 10 cm thick, its top at z = 0
+# Rolling friction of the floor box (its contacts take condim 6): a knife standing on its edge touches a
+# box at two points, a line it kept rolling about (8 of 8 targeted "toppled on floor" knives still
+# turned at 0.02-0.07 rad/s after 2 s, the still limit 0.05); with 0.005 m all 8 rest, with 0.001 m 4
+# (docs/generator.md). Recorded as ``floor_rolling_friction`` beside ``floor``.
+FLOOR_ROLLING_FRICTION = 0.005
 
 
 def contact_options(floor: str = "plane") -> dict:
     """``CONTACT_OPTIONS`` as a scene records them: with ``floor`` only when it is not the plane, so
     a scene made on the plane records exactly what it did before floors had a choice."""
-    return CONTACT_OPTIONS if floor == "plane" else {**CONTACT_OPTIONS, "floor": floor}
+    if floor == "plane":
+        return CONTACT_OPTIONS
+    return {**CONTACT_OPTIONS, "floor": floor, "floor_rolling_friction": FLOOR_ROLLING_FRICTION}
 
 
 def _box_floor(spec: mujoco.MjSpec) -> None:
@@ -77,7 +84,8 @@ def _box_floor(spec: mujoco.MjSpec) -> None:
         pos=[0, 0, -FLOOR_BOX_HALF[2]],
         size=FLOOR_BOX_HALF,
         group=0,  # a collision geom, hidden like the table's
-        friction=list(table.friction),
+        friction=[table.friction[0], table.friction[1], FLOOR_ROLLING_FRICTION],
+        condim=6,
         rgba=[0.5, 0.5, 0.5, 1],
     )
 
