@@ -297,10 +297,10 @@ def _eval_proposals(args: argparse.Namespace, scenes) -> int:
         return fail("no feasible scene to evaluate (targets on the floor are out of reach)")
     retrieval = None if str(args.retrieval) == "oracle" else Path(args.retrieval)
     summary = evaluate_scenes(args.proposals, scenes, args.out, retrieval, physics, not args.quiet)
+    low, high = summary["interval"]
     print(
-        f"{summary['episodes']} episodes ({summary['perception']} target not seen), "
-        f"success {summary['success_rate']:.2%}, first attempt {summary['first_attempt_rate']:.2%} "
-        f"-> {args.out}"
+        f"{summary['episodes']} episodes, success {summary['success']:.2%} [{low:.2%}, {high:.2%}], "
+        f"first attempt {summary['first_attempt']:.2%}, failures {summary['failures']} -> {args.out}"
     )
     return 0
 

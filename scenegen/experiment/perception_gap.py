@@ -24,7 +24,9 @@ from scenegen.policy.success_table import wilson
 from scenegen.store.batch import atomic_write
 
 
-def _block(records: list[dict]) -> dict:
+def episodes_block(records: list[dict]) -> dict:
+    """Success with a 95 % Wilson interval, perception failures, failure labels and out-of-time
+    episodes of ``records`` (episode records of the closed loop or the proposal loop)."""
     n, k = len(records), sum(r["success"] for r in records)
     low, high = wilson(k, n) if n else (None, None)
     perception = sum("perception" in r["attempt_failures"] for r in records)
@@ -50,9 +52,9 @@ def summarise(records: list[dict], panels: dict[str, list[str]]) -> dict:
     by_id = {}
     for r in records:
         by_id.setdefault(r["panel_id"], r)
-    out = {"all": _block(list(by_id.values()))}
+    out = {"all": episodes_block(list(by_id.values()))}
     for name, ids in panels.items():
-        out[name] = _block([by_id[i] for i in ids if i in by_id])
+        out[name] = episodes_block([by_id[i] for i in ids if i in by_id])
     return out
 
 

@@ -242,11 +242,11 @@ def evaluate_scenes(
     ``out/summary.json``; the sequence and decision stores beside them make a rerun decide and
     simulate nothing twice."""
     import json
-    from collections import Counter
 
     from tqdm import tqdm
 
     from scenegen.core.files import folder_sha256
+    from scenegen.experiment.perception_gap import episodes_block
     from scenegen.store.batch import atomic_write
 
     out = Path(out)
@@ -257,18 +257,14 @@ def evaluate_scenes(
             model, scenes, store, observations, pool, retrieval, progress=lambda _: bar.update()
         )
     atomic_write(out / "episodes.jsonl", "".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
-    n = len(records)
     summary = {
         "policy": "proposals",
         "proposals": str(model),
         "proposals_sha256": folder_sha256(Path(model)),
         "retrieval": str(retrieval) if retrieval is not None else "oracle",
         "physics": physics,
-        "episodes": n,
-        "success_rate": sum(r["success"] for r in records) / max(n, 1),
-        "first_attempt_rate": sum(r["first_attempt"] for r in records) / max(n, 1),
-        "failures": dict(Counter(r["failure"] for r in records if not r["success"])),
-        "perception": sum(r["failure"] == "target_not_seen" for r in records),
+        **episodes_block(records),
+        "first_attempt": round(sum(r["first_attempt"] for r in records) / max(len(records), 1), 4),
     }
     atomic_write(out / "summary.json", json.dumps(summary, indent=1) + "\n")
     return summary
