@@ -14,36 +14,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
-from collections import Counter
 from pathlib import Path
 
 from scenegen.env.physics import DEFAULT_PHYSICS, physics_named
 from scenegen.experiment.closed_loop import Cost, Workers, evaluate_policies
 from scenegen.experiment.sequences import NOMINAL, ObservationStore, PathStore, Variant
-from scenegen.policy.success_table import wilson
+from scenegen.experiment.transfer_stats import episodes_block
 from scenegen.store.batch import atomic_write
-
-
-def episodes_block(records: list[dict]) -> dict:
-    """Success with a 95 % Wilson interval, perception failures, failure labels and out-of-time
-    episodes of ``records`` (episode records of the closed loop or the proposal loop)."""
-    n, k = len(records), sum(r["success"] for r in records)
-    low, high = wilson(k, n) if n else (None, None)
-    perception = sum("perception" in r["attempt_failures"] for r in records)
-    first = [r["perception"][0] for r in records if r["perception"] and r["perception"][0]]
-    overlap = [s["hit_iou"] for s in first if "hit_iou" in s]  # None unless every decision has it
-    return {
-        "episodes": n,
-        "success": round(k / n, 4) if n else None,
-        "interval": [round(low, 4), round(high, 4)] if n else None,
-        "perception_failures": perception,
-        "first_decision_hit": round(sum(s["hit"] for s in first) / len(first), 4) if first else None,
-        "first_decision_hit_iou": (
-            round(sum(overlap) / len(overlap), 4) if overlap and len(overlap) == len(first) else None
-        ),
-        "failures": dict(sorted(Counter(r["failure"] for r in records if not r["success"]).items())),
-        "out_of_time": sum(r["out_of_time"] for r in records),
-    }
 
 
 def summarise(records: list[dict], panels: dict[str, list[str]]) -> dict:

@@ -246,7 +246,7 @@ def evaluate_scenes(
     from tqdm import tqdm
 
     from scenegen.core.files import folder_sha256
-    from scenegen.experiment.perception_gap import episodes_block
+    from scenegen.experiment.transfer_stats import episodes_block
     from scenegen.store.batch import atomic_write
 
     out = Path(out)

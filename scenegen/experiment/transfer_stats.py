@@ -6,9 +6,12 @@ its own. Intervals are the replicates' 2.5 and 97.5 percentiles."""
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
+
+from scenegen.policy.success_table import wilson
 
 
 def success_grid(records: Sequence[dict], runs: Sequence[str], scene_ids: Sequence[str]) -> np.ndarray:
@@ -83,4 +86,26 @@ def share(gain_arm: np.ndarray, base: np.ndarray, arm: np.ndarray, replicates: i
         "low": round(float(low), 4),
         "high": round(float(high), 4),
         "undefined": int((~defined).sum()),
+    }
+
+
+def episodes_block(records: list[dict]) -> dict:
+    """Success with a 95 % Wilson interval, perception failures, failure labels and out-of-time
+    episodes of ``records`` (episode records of the closed loop or the proposal loop)."""
+    n, k = len(records), sum(r["success"] for r in records)
+    low, high = wilson(k, n) if n else (None, None)
+    perception = sum("perception" in r["attempt_failures"] for r in records)
+    first = [r["perception"][0] for r in records if r["perception"] and r["perception"][0]]
+    overlap = [s["hit_iou"] for s in first if "hit_iou" in s]  # None unless every decision has it
+    return {
+        "episodes": n,
+        "success": round(k / n, 4) if n else None,
+        "interval": [round(low, 4), round(high, 4)] if n else None,
+        "perception_failures": perception,
+        "first_decision_hit": round(sum(s["hit"] for s in first) / len(first), 4) if first else None,
+        "first_decision_hit_iou": (
+            round(sum(overlap) / len(overlap), 4) if overlap and len(overlap) == len(first) else None
+        ),
+        "failures": dict(sorted(Counter(r["failure"] for r in records if not r["success"]).items())),
+        "out_of_time": sum(r["out_of_time"] for r in records),
     }
