@@ -35,6 +35,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_N
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import hashlib  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
@@ -124,7 +125,7 @@ def run_suite(
     """Every request asked of every column (:func:`columns`); per column its rows and their summary.
     The diffusion checkpoint is loaded (and torch set up) once first, outside every timed batch.
     ``rows_file``: each row is appended there as it is measured, and rows found there (same column,
-    request, scenes, cap and seed) are not asked again: a killed run resumes."""
+    recipe bytes, request, scenes, cap and seed) are not asked again: a killed run resumes."""
     table = columns(proposers, recipe, also)
     done = {}
     if rows_file is not None and rows_file.exists():
@@ -138,9 +139,12 @@ def run_suite(
         config = load_pipeline(recipe, {"n": 1}, None, "diffusion")
         PROPOSERS["diffusion"](config.proposer, load_catalog()).propose(requests[0].condition(), [0], seed)
     results: dict = {name: {"recipe": str(path), "rows": []} for name, (path, _) in table.items()}
+    # a row is the recipe's as it was: an edited recipe (its bytes, the checkpoint's sha256 among them)
+    # asks again
+    digests = {name: hashlib.sha256(path.read_bytes()).hexdigest()[:16] for name, (path, _) in table.items()}
     for number, request in enumerate(requests):
         for name, (path, kind) in table.items():
-            key = json.dumps([name, request.text, list(request.robot_pose), scenes, cap, seed])
+            key = json.dumps([name, digests[name], request.text, list(request.robot_pose), scenes, cap, seed])
             row = done.get(key)
             if row is None:
                 row = {"request": request.as_dict(), **ask(path, request, kind, scenes, cap, seed)}

@@ -163,6 +163,7 @@ class SceneEnv(ManipulationEnv):
             scene.cameras,
             base=self._robot_spec.copy(),
             floor=scene.floor,
+            table_rolling_friction=scene.table_rolling_friction,
         )
         self.physics.apply(spec, catalog, scene.objects)
         self.sim = MjSim(spec.compile())

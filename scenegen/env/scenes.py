@@ -54,6 +54,7 @@ class EnvScene:
     path: Path | None = None  # the scene directory of a stored scene
     catalogs: tuple[str, ...] = ()  # the user catalogs its assets come from (scene.json provenance)
     floor: str = "plane"  # what the floor was when it settled (sim/world.py FLOORS; scene.json's)
+    table_rolling_friction: float | None = None  # the table's when it settled (scene.json's)
 
     @property
     def segmentation(self) -> dict[str, int]:
@@ -95,6 +96,7 @@ def stored_scene(scene_dir: Path, source: str | None = None) -> EnvScene:
         path=scene_dir,
         catalogs=catalogs,
         floor=record.contact_options.get("floor", "plane"),
+        table_rolling_friction=record.contact_options.get("table_rolling_friction"),
     )
 
 

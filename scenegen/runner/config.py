@@ -100,6 +100,8 @@ class PipelineConfig(BaseModel):
     max_tries: int | None = Field(None, ge=1)
     # what objects on the floor rest on (sim/world.py FLOORS): robosuite's plane, or a box like the table
     floor: Literal["plane", "box"] = "plane"
+    # rolling friction of the table's contacts (m, condim 6; sim/world.py); None: robosuite's table as is
+    table_rolling_friction: float | None = Field(None, ge=0.0, le=0.05)
 
     @model_validator(mode="after")
     def _reachable_request(self):
@@ -136,7 +138,8 @@ class PipelineConfig(BaseModel):
         # A recipe without the realism filter dumps (and hashes) exactly as before the filter existed,
         # so the digests stamped into the reference set and earlier batches stay valid.
         data = handler(self)
-        for key in ("realism", "robot_mesh_detail", "max_tries"):  # the same for later keys
+        # the same for later keys
+        for key in ("realism", "robot_mesh_detail", "max_tries", "table_rolling_friction"):
             if data.get(key, 0) is None:
                 del data[key]
         if data.get("sensor") == "exact":

@@ -63,14 +63,21 @@ FLOOR_BOX_HALF = (3.0, 3.0, 0.05)  # m: the plane's extent, 10 cm thick, its top
 # turned at 0.02-0.07 rad/s after 2 s, the still limit 0.05); with 0.005 m all 8 rest, with 0.001 m 4
 # (docs/generator.md). Recorded as ``floor_rolling_friction`` beside ``floor``.
 FLOOR_ROLLING_FRICTION = 0.005
+# The table's rolling friction is a recipe's choice (``table_rolling_friction``; None: robosuite's table
+# as it is, condim 3). On robosuite's table 4 of 12 knives (4 resting poses x 3 places) still turned at
+# 0.08-0.21 rad/s after 2 s; with 0.005 m and condim 6, 12 of 12 rest (under 0.008; docs/generator.md).
 
 
-def contact_options(floor: str = "plane") -> dict:
-    """``CONTACT_OPTIONS`` as a scene records them: with ``floor`` only when it is not the plane, so
-    a scene made on the plane records exactly what it did before floors had a choice."""
-    if floor == "plane":
-        return CONTACT_OPTIONS
-    return {**CONTACT_OPTIONS, "floor": floor, "floor_rolling_friction": FLOOR_ROLLING_FRICTION}
+def contact_options(floor: str = "plane", table_rolling_friction: float | None = None) -> dict:
+    """``CONTACT_OPTIONS`` as a scene records them: ``floor`` only when it is not the plane and
+    ``table_rolling_friction`` only when set, so a scene made without them records exactly what it did
+    before they were choices."""
+    options = dict(CONTACT_OPTIONS)
+    if floor != "plane":
+        options |= {"floor": floor, "floor_rolling_friction": FLOOR_ROLLING_FRICTION}
+    if table_rolling_friction is not None:
+        options["table_rolling_friction"] = table_rolling_friction
+    return options
 
 
 def _box_floor(spec: mujoco.MjSpec) -> None:
@@ -88,6 +95,13 @@ def _box_floor(spec: mujoco.MjSpec) -> None:
         condim=6,
         rgba=[0.5, 0.5, 0.5, 1],
     )
+
+
+def _rolling_table(spec: mujoco.MjSpec, rolling: float) -> None:
+    """The table's contacts with rolling friction ``rolling`` (m) and condim 6, as the floor box's."""
+    table = spec.geom("table_collision")
+    table.friction = [table.friction[0], table.friction[1], rolling]
+    table.condim = 6
 
 
 def _quiet_robosuite() -> None:
@@ -176,11 +190,13 @@ def build_world(
     cameras: Sequence[Camera] = (),
     base: mujoco.MjSpec | None = None,
     floor: str = "plane",
+    table_rolling_friction: float | None = None,
 ) -> mujoco.MjSpec:
     """A spec of the full scene; objects are free bodies named as their placements, at their poses.
 
     ``base``: the robot-and-table world to furnish (default: :func:`robot_spec`, the held robot;
-    it is modified in place). ``floor``: what the floor is (``FLOORS``). Call :func:`initial_state`
+    it is modified in place). ``floor``: what the floor is (``FLOORS``); ``table_rolling_friction``: the
+    table's rolling friction (m; None: robosuite's table as it is). Call :func:`initial_state`
     on the compiled model for the qpos/ctrl of the held robot at its pose.
     """
     if floor not in FLOORS:
@@ -188,6 +204,8 @@ def build_world(
     spec = robot_spec() if base is None else base
     if floor == "box":
         _box_floor(spec)
+    if table_rolling_friction is not None:
+        _rolling_table(spec, table_rolling_friction)
     for piece in furniture:
         _add_furniture(spec, piece)
     # Every catalog mesh is declared, used or not, in catalog order: all scenes of a catalog then share

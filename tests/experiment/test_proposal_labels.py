@@ -81,6 +81,22 @@ def test_a_rerun_simulates_nothing_and_two_workers_write_the_same_rows(labelled,
     assert parallel.entries == store.entries and parallel.mismatches == 0
 
 
+def test_a_killed_run_resumes_to_the_same_store(labelled, tmp_path: Path):
+    """Killed after the first layout and in the middle of writing a row (a torn last line): the
+    rerun keeps what was whole, simulates the rest and ends with the uninterrupted run's rows."""
+    folder, store, _, _ = labelled
+    lines = (folder / "paths.jsonl").read_text().splitlines(keepends=True)
+    first = scene_sha256(scenes()[0])
+    kept = [line for line in lines if f'"scene_sha256": "{first}"' in line]
+    assert 0 < len(kept) < len(lines)
+    torn = next(line for line in lines if line not in kept)
+    (tmp_path / "paths.jsonl").write_text("".join(kept) + torn[: len(torn) // 2])
+    views = ObservationStore(tmp_path / "views")
+    resumed = label_proposals(scenes(), PathStore(tmp_path / "paths.jsonl"), views, CONFIG)
+    assert resumed.stored == len(kept) and resumed.simulated == len(lines) - len(kept)
+    assert PathStore(tmp_path / "paths.jsonl").entries == store.entries
+
+
 def test_the_sampler_draws_the_same_candidates_at_a_point_in_any_process():
     a = point_rng(0, "abc", ["push@1s1:x"]).random(3)
     assert (a == point_rng(0, "abc", ["push@1s1:x"]).random(3)).all()
