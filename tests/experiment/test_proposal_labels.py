@@ -156,3 +156,23 @@ def test_the_proposal_model_in_closed_loop_serves_labelled_first_attempts_and_re
             == records
         )
         assert again.simulated == 0 and again.cpu["observe"] == 0.0  # every decision and attempt is stored
+
+
+def test_no_label_set_holds_a_test_panel_layout():
+    """Issue 63, acceptance 5: every layout the labels, the models and the curves read (the label
+    sets) is off version 2's test side; validation is its validation side (which draws on version 1's
+    spent panels, by version 2's design), and the training and curve sets are off version 1's too."""
+    from scenegen.experiment.proposal_labels import LABEL_SETS, label_layouts
+    from scenegen.policy.panels import panel_scene_ids
+    from scenegen.policy.panels_v2 import load_panels_v2, panel_id
+
+    v2 = load_panels_v2()
+    test_v2 = {i for ids in v2["test"].values() for i in ids}
+    validation = {i for ids in v2["validation"].values() for i in ids}
+    sets = label_layouts(LABEL_SETS)
+    for name, layouts in sets.items():
+        ids = {panel_id(s) for s in layouts}
+        assert not ids & test_v2, f"{name} holds a version 2 test layout"
+        reference = {s.scene_id for s in layouts if panel_id(s).startswith("reference/")}
+        assert name == "validation" or not reference & panel_scene_ids(), f"{name} holds a version 1 panel"
+        assert (name == "validation") == (ids <= validation), name
