@@ -26,7 +26,7 @@ import numpy as np
 
 from scenegen.env.scenes import EnvScene, scene_sha256
 from scenegen.experiment.proposal_data import examples
-from scenegen.experiment.proposal_labels import label_layouts, open_labels
+from scenegen.experiment.proposal_labels import label_layouts, open_labels, proposed_at
 from scenegen.experiment.proposal_offline import first_ranked, train_on
 from scenegen.experiment.retrieval_curves import SEEDS, SETS
 from scenegen.schema.condition import RARE_TAGS
@@ -69,14 +69,16 @@ def scoring() -> list[EnvScene]:
     return label_layouts(["curve"])["curve"]
 
 
-def _labelled(data, scenes: Sequence[EnvScene], what: str) -> None:
+def _labelled(data, scenes: Sequence[EnvScene], what: str, views, config) -> None:
     """ValueError unless every layout of ``scenes`` has labels (a model trained or scored on part of
-    its set would be another curve)."""
-    missing = len({scene_sha256(s) for s in scenes} - set(data.scene))
-    if missing:
+    its set would be another curve), or was proposed nothing: its first decision does not see the
+    target (``views`` holds its empty proposal), so there is nothing to label."""
+    missing = {scene_sha256(s) for s in scenes} - set(data.scene)
+    unseen = {sha for sha in missing if proposed_at(views, sha, (), config.inputs(config.sampler)) == []}
+    if missing - unseen:
         raise ValueError(
-            f"{missing} of the {len(scenes)} layouts of {what} have no labels: run `scenegen proposals "
-            "label` to the end first (it resumes)"
+            f"{len(missing - unseen)} of the {len(scenes)} layouts of {what} have no labels: run `scenegen "
+            "proposals label` to the end first (it resumes)"
         )
 
 
@@ -92,18 +94,19 @@ def prepare(labels: Path, head: Path | None, sizes: Sequence[int] = SIZES, worke
     groups.append((curve, head, "the curve set"))
     for scenes, retrieval, what in groups:
         data = examples(scenes, store, views, crops, config, retrieval, workers, progress)
-        _labelled(data, scenes, what)
+        _labelled(data, scenes, what, views, config)
 
 
 def _rows(picks: dict[str, dict], scenes: Sequence[EnvScene], scored: str) -> list[dict]:
-    """One row per scored layout with a pick, in ``scenes``' order: its first-ranked label."""
+    """One row per scored layout, in ``scenes``' order: its first-ranked label; a failure where
+    nothing was picked (the first decision did not see the target: no candidate to act on), so every
+    policy is scored over the same layouts."""
     rows = []
     for s in scenes:
-        pick = picks.get(scene_sha256(s))
-        if pick is not None:
-            tags = [t for t in RARE_TAGS if s.tags.get(t)]
-            rows.append({"set": scored, "layout": scene_sha256(s), "tags": tags,
-                         "success": bool(pick["success"]), "any": bool(pick["any"])})  # fmt: skip
+        pick = picks.get(scene_sha256(s), {"success": False, "any": False})
+        tags = [t for t in RARE_TAGS if s.tags.get(t)]
+        rows.append({"set": scored, "layout": scene_sha256(s), "tags": tags,
+                     "success": bool(pick["success"]), "any": bool(pick["any"])})  # fmt: skip
     return rows
 
 
@@ -132,7 +135,7 @@ def run_job(
         began = time.process_time()
         train = train if train is not None else training(job.set_name, job.n)
         data = examples(train, store, views, crops, config, workers=workers)
-        _labelled(data, train, f"{job.name}'s training set")
+        _labelled(data, train, f"{job.name}'s training set", views, config)
         model = train_on(data, steps, job.seed, config={"job": job.name, "steps": steps})
         cpu = time.process_time() - began
         model.save(out / "model")
@@ -140,7 +143,7 @@ def run_job(
         per_sight = {}
         for sight, retrieval in zip(SIGHTS, (None, head), strict=True):
             seen = examples(scored, store, views, crops, config, retrieval=retrieval, workers=workers)
-            _labelled(seen, scored, "the scored set")
+            _labelled(seen, scored, "the scored set", views, config)
             per_sight[sight] = _rows(first_ranked(model, seen), scored, "curve")
         record = {"training_cpu_s": round(cpu, 1), "candidates": len(data), "rows": per_sight}
         atomic_write(done, json.dumps(record) + "\n")

@@ -232,7 +232,9 @@ class LabelCost:
         return self.cpu["simulate"] / self.simulated if self.simulated else None
 
 
-def _proposed(views: ObservationStore, sha: str, tokens: Sequence[str], inputs: str) -> list[dict] | None:
+def proposed_at(views: ObservationStore, sha: str, tokens: Sequence[str], inputs: str) -> list[dict] | None:
+    """The candidates proposed at the decision point after ``tokens`` ([] where the target was not
+    seen), or None where nothing was proposed there yet."""
     meta = views.meta(ObservationStore.key(sha, tokens, NOMINAL, inputs))
     return None if meta is None else meta["candidates"]
 
@@ -284,7 +286,7 @@ def label_proposals(
     with Workers(workers, physics) as pool:
         _propose_missing([(s, None, (), config.sampler) for s in scenes], views, config, pool, cost, progress)
         first = {
-            scene_sha256(s): _proposed(views, scene_sha256(s), (), config.inputs(config.sampler))
+            scene_sha256(s): proposed_at(views, scene_sha256(s), (), config.inputs(config.sampler))
             for s in scenes
         }
         _simulate_missing(
@@ -303,7 +305,7 @@ def label_proposals(
         _propose_missing(points, views, config, pool, cost, progress)
         follow = []
         for s, c, row in movers:
-            after = _proposed(views, row["scene_sha256"], row["tokens"], config.inputs(config.follow))
+            after = proposed_at(views, row["scene_sha256"], row["tokens"], config.inputs(config.follow))
             follow += [(s, [c, g]) for g in after]
         _simulate_missing(follow, store, physics, pool, cost, progress)
     return cost
@@ -323,7 +325,7 @@ def candidate_labels(
     out = []
     for s in scenes:
         sha = scene_sha256(s)
-        proposed = _proposed(views, sha, (), config.inputs(config.sampler))
+        proposed = proposed_at(views, sha, (), config.inputs(config.sampler))
         if proposed is None:
             continue
         for c in proposed:
@@ -331,7 +333,7 @@ def candidate_labels(
             row = store.get(sha, [token])
             if row is None:
                 continue
-            after = _proposed(views, sha, [token], config.inputs(config.follow))
+            after = proposed_at(views, sha, [token], config.inputs(config.follow))
             successes = None
             if after is not None:
                 rows = [

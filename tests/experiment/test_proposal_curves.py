@@ -4,6 +4,7 @@ sets trained on the same layouts lead each other by nothing; a layout without la
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from scenegen.env.scenes import scene_sha256
 from scenegen.experiment.proposal_curves import SIGHTS, ProposalJob, chooser_results, chooser_rows, run_job
 from scenegen.experiment.proposal_labels import LabelConfig, label_layouts, label_proposals, open_labels
 from scenegen.experiment.retrieval_curves import curve_results, curve_table, leads
+from scenegen.experiment.sequences import NOMINAL, ObservationStore
 from scenegen.manipulation.proposals import SamplerConfig
 from scenegen.perception.retrieval import DEFAULT_HEAD
 
@@ -61,6 +63,23 @@ def test_a_set_with_a_layout_not_yet_labelled_is_refused(labelled, tmp_path: Pat
             ProposalJob("natural", 3, 0), tmp_path, labels, None, scored=scenes[:2], train=scenes, steps=5
         )
     assert not (tmp_path / "natural_3_0" / "scores.json").exists()
+
+
+def test_a_layout_whose_target_is_not_seen_is_no_gap_and_scores_a_failure(labelled, tmp_path: Path):
+    """A first decision that sees no target proposes nothing ([] in the view store): nothing to label,
+    so the set is complete without it, and a scored layout of that kind is the policy's failure (every
+    policy is scored over the same layouts)."""
+    labels, scenes = labelled
+    labels = shutil.copytree(labels, tmp_path / "labels")  # the shared folder stays as labelled
+    config, _, views = open_labels(labels)
+    unseen = scenes[2]
+    views.put(ObservationStore.key(scene_sha256(unseen), (), NOMINAL, config.inputs(config.sampler)), None,
+              {"candidates": []})  # fmt: skip
+    job = ProposalJob("natural", 3, 0)
+    records = run_job(job, tmp_path / "models", labels, None, scored=scenes, train=scenes, steps=5)
+    for record in records:
+        last = record["rows"][-1]
+        assert last["layout"] == scene_sha256(unseen) and not last["success"] and not last["any"]
 
 
 def test_the_choosers_first_attempt_beside_the_curves_is_simulated_once(labelled, tmp_path: Path):
