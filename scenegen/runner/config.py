@@ -151,6 +151,11 @@ class PipelineConfig(BaseModel):
         return data
 
     @property
+    def supports(self) -> dict:
+        """What objects rest on, as sim/world.py's build_world and contact_options take it."""
+        return {"floor": self.floor, "table_rolling_friction": self.table_rolling_friction}
+
+    @property
     def proposal_cap(self) -> int:
         return self.max_proposals or 40 * self.n
 

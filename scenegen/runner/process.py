@@ -75,13 +75,7 @@ def process_proposal(
 
     clock.start()
     spec = world.build_world(
-        catalog,
-        proposal.objects,
-        proposal.furniture,
-        proposal.lighting,
-        proposal.cameras,
-        floor=config.floor,
-        table_rolling_friction=config.table_rolling_friction,
+        catalog, proposal.objects, proposal.furniture, proposal.lighting, proposal.cameras, **config.supports
     )
     model = spec.compile()
     qpos0, ctrl = world.initial_state(model, proposal.condition.robot_pose, proposal.objects)
@@ -141,7 +135,7 @@ def process_proposal(
         segmentation=segmentation,
         render=render_settings(config),
         contacts=tuple(contacts),
-        contact_options=world.contact_options(config.floor, config.table_rolling_friction),
+        contact_options=world.contact_options(**config.supports),
         checks=tuple(checks),
         settle=settled.stats,
         provenance={
