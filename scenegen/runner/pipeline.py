@@ -172,7 +172,7 @@ def run_batch(
                 rejections[outcome.rejection.label] += 1
             seconds["store"] += time.perf_counter() - t0
             bar.set_postfix_str(
-                f"proposals={index} " + " ".join(f"{k}={v}" for k, v in sorted(rejections.items())),
+                f"tries={index} " + " ".join(f"{k}={v}" for k, v in sorted(rejections.items())),
                 refresh=False,
             )
             if accepted == config.n or _capped(config, accepted, rejections):
