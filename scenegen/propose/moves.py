@@ -1,5 +1,6 @@
-"""The moves projections are made of (propose/project.py, propose/tag_projection.py): an object moved
-with what rests on it, the object that carries another on the table, a point kept inside a region.
+"""The moves projections are made of (propose/project.py, propose/tag_projection.py,
+propose/stack_projection.py): an object moved with what rests on it, the object that carries another
+on the table, a point kept inside a region, the target re-placed in a resting pose on a support.
 Pure: numpy, the layout and the schema.
 """
 
@@ -9,6 +10,7 @@ import math
 
 import numpy as np
 
+from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
 from scenegen.schema.scene import SceneProposal
 
@@ -115,3 +117,33 @@ def moved(proposal: SceneProposal, name: str, dxy, dz: float = 0.0):
     names = [*(o.name for o in proposal.objects), *(p.name for p in proposal.furniture)]
     moved = tuple(n for n in names if n in carried)
     return proposal.model_copy(update={"objects": objects, "furniture": furniture}), moved
+
+
+def resting(proposal: SceneProposal, catalog: Catalog, pose: int | None, support: str, xy, surface_z: float):
+    """The target re-placed: resting pose ``pose`` (None: its own) at its yaw, on ``support`` at
+    ``xy``, its centre at the surface's height plus the pose's; None when something rests on it."""
+    from scenegen.core.placement import quat_mul, yaw_quat
+
+    target = next(o for o in proposal.objects if o.name == proposal.target)
+    if any(o.support == target.name for o in proposal.objects):
+        return None
+    asset = catalog.get(target.asset)
+    pose = target.resting_pose if pose is None else pose
+    rest_now = np.asarray(asset.resting_poses[target.resting_pose].quat)
+    rel = quat_mul(np.asarray(target.quat), rest_now * np.array([1, -1, -1, -1]))
+    yaw = 2 * np.arctan2(rel[3], rel[0])
+    quat = quat_mul(yaw_quat(float(yaw)), np.asarray(asset.resting_poses[pose].quat))
+    quat = quat if quat[0] >= 0 else -quat
+    position = (float(xy[0]), float(xy[1]), surface_z + asset.resting_poses[pose].height * target.scale)
+    distance = float(np.linalg.norm(np.subtract(position, target.position)))
+    placed = target.model_copy(
+        update={
+            "position": tuple(round(v, 6) for v in position),
+            "quat": tuple(round(float(v), 7) for v in quat),
+            "resting_pose": pose,
+            "support": support,
+            "projection_distance": round(float(np.hypot(target.projection_distance, distance)), 6),
+        }
+    )
+    objects = tuple(placed if o.name == target.name else o for o in proposal.objects)
+    return proposal.model_copy(update={"objects": objects}), (target.name,)

@@ -18,12 +18,16 @@ What each rejection measured, and the move it gives (``slack`` past the threshol
 - ``condition_unmet``: each missed tag by its own projection (propose/tag_projection.py: a
   near_edge or low_light by its measured margin, clutter by the neighbours missing, occluded by an
   occluder set before the camera, toppled, stacked, on_floor and under_overhang by the discrete
-  change that makes the predicate hold), None when one of them has none.
+  change that makes the predicate hold), None when one of them has none;
+- ``fell_off`` or ``unstable`` naming the target of a required stack: the target set on the free
+  stack base with the widest top, when it is wider than its carrier's
+  (``stack_projection.restacked``).
 
 An object moves with everything stacked on it, a piece of furniture with what rests on it
 (propose/moves.py); each move adds its length to the objects' ``projection_distance``. Anything else
-(unstable, fell_off; nothing named) has no projection: None. :func:`anticipated` applies the tag
-projections before the first check, where the proposer can measure the tag itself.
+(an unstable or fallen object that is not such a target; nothing named) has no projection: None.
+:func:`anticipated` applies the tag projections before the first check, where the proposer can
+measure the tag itself.
 The projected scene is checked again like any try. Pure: no torch, no MuJoCo, no files.
 """
 
@@ -38,6 +42,7 @@ from scenegen.core import layout
 from scenegen.propose import tag_projection as tp
 from scenegen.propose.moves import SLACK, in_workspace, into, moved, root
 from scenegen.propose.separate import separate
+from scenegen.propose.stack_projection import restacked
 from scenegen.schema.scene import Rejection, SceneProposal
 
 PROJECTED = (
@@ -47,6 +52,8 @@ PROJECTED = (
     "robot_overlap",
     "unreachable",
     "condition_unmet",
+    "fell_off",
+    "unstable",
 )
 _TAG = re.compile(r"(required|forbidden) (\w+) = (-?[\d.eE+-]+) \S+ \(threshold (-?[\d.eE+-]+)\)")
 
@@ -98,6 +105,8 @@ def _project(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, ma
         return tp.moved_under(proposal, base, -step if inward else step, tp.covering(proposal, catalog, base))
     if label == "condition_unmet":
         return _tags(proposal, rejection, catalog, light)
+    if label in ("fell_off", "unstable") and rejection.detail.split(";")[0].strip() == proposal.target:
+        return restacked(proposal, catalog)
     return None
 
 

@@ -11,8 +11,9 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.moves import GROUNDS, SLACK, moved, rehomed, root
+from scenegen.propose.moves import GROUNDS, SLACK, moved, rehomed, resting, root
 from scenegen.propose.separate import separate
+from scenegen.propose.stack_projection import stacked
 from scenegen.schema.scene import SceneProposal
 
 SLACK_LIGHT = 0.1  # share of the low_light threshold a projected irradiance lies below (or above) it
@@ -245,36 +246,6 @@ def edge_margin(catalog: Catalog, obj) -> float:
     return layout.edge_margin(_placed_vertices(catalog, obj))
 
 
-def _resting(proposal: SceneProposal, catalog: Catalog, pose: int | None, support: str, xy, surface_z: float):
-    """The target re-placed: resting pose ``pose`` (None: its own) at its yaw, on ``support`` at
-    ``xy``, its centre at the surface's height plus the pose's; None when something rests on it."""
-    from scenegen.core.placement import quat_mul, yaw_quat
-
-    target = next(o for o in proposal.objects if o.name == proposal.target)
-    if any(o.support == target.name for o in proposal.objects):
-        return None
-    asset = catalog.get(target.asset)
-    pose = target.resting_pose if pose is None else pose
-    rest_now = np.asarray(asset.resting_poses[target.resting_pose].quat)
-    rel = quat_mul(np.asarray(target.quat), rest_now * np.array([1, -1, -1, -1]))
-    yaw = 2 * np.arctan2(rel[3], rel[0])
-    quat = quat_mul(yaw_quat(float(yaw)), np.asarray(asset.resting_poses[pose].quat))
-    quat = quat if quat[0] >= 0 else -quat
-    position = (float(xy[0]), float(xy[1]), surface_z + asset.resting_poses[pose].height * target.scale)
-    distance = float(np.linalg.norm(np.subtract(position, target.position)))
-    placed = target.model_copy(
-        update={
-            "position": tuple(round(v, 6) for v in position),
-            "quat": tuple(round(float(v), 7) for v in quat),
-            "resting_pose": pose,
-            "support": support,
-            "projection_distance": round(float(np.hypot(target.projection_distance, distance)), 6),
-        }
-    )
-    objects = tuple(placed if o.name == target.name else o for o in proposal.objects)
-    return proposal.model_copy(update={"objects": objects}), (target.name,)
-
-
 TOPPLED_DEG = 45.0  # the predicate's default (toppled_angle)
 
 
@@ -303,57 +274,7 @@ def toppled(proposal: SceneProposal, kind: str, value: float, threshold: float, 
         return None
     pose = max(poses, key=lambda i: (asset.resting_poses[i].probability, -i))
     surface_z = target.position[2] - asset.resting_poses[target.resting_pose].height * target.scale
-    return _resting(proposal, catalog, pose, target.support, target.position[:2], surface_z)
-
-
-def stacked(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
-    """The target set on top of the nearest other object that can carry it (a stack base with nothing
-    on it), at its top's centre (required): on the table one in the arm's reach; on the floor (the
-    target lies there) one on the floor or brought down from the table to where the target lies, as
-    the reachability check leaves a floor stack to another robot. Or, stacked against the request,
-    the target set on the table beside what carries it (forbidden)."""
-    target = next(o for o in proposal.objects if o.name == proposal.target)
-    here = np.asarray(target.position[:2])
-    if kind == "required":
-        ground = "floor" if target.support == "floor" else "table"  # on_floor projected first
-        bases = [
-            o
-            for o in proposal.objects
-            if o.name != target.name
-            and o.support in ((ground,) if ground == "table" else GROUNDS)
-            and layout.is_stack_base(catalog.get(o.asset))
-            and not any(p.support == o.name for p in proposal.objects)
-        ]
-        shoulder = np.asarray(layout.SHOULDER)
-        asset = catalog.get(target.asset)
-        height = asset.resting_poses[target.resting_pose].height * target.scale
-        above = layout.pose_top(asset, target.resting_pose) * target.scale
-
-        def reachable(base) -> bool:  # the target's centre or top on the base within the arm's reach
-            top = layout.object_top_surface(catalog, base)
-            centre = np.array([*top.center, top.z + height])
-            near = min(np.linalg.norm(centre - shoulder), np.linalg.norm(centre + [0, 0, above] - shoulder))
-            return float(near) <= layout.REACH[1] - 3 * SLACK
-
-        bases = [o for o in bases if ground == "floor" or reachable(o)]
-        if not bases:
-            return None
-        base = min(bases, key=lambda o: (float(np.hypot(*(np.asarray(o.position[:2]) - here))), o.name))
-        brought = rehomed(proposal, base.name, "floor", here) if ground == "floor" else None
-        out, names = brought or (proposal, ())
-        base = next(o for o in out.objects if o.name == base.name)
-        top = layout.object_top_surface(catalog, base)
-        placed = _resting(out, catalog, None, base.name, top.center, top.z)
-        return None if placed is None else (placed[0], (*names, *placed[1]))
-    carrier = next((o for o in proposal.objects if o.name == target.support), None)
-    if carrier is None:
-        return None
-    away = here - np.asarray(layout.SHOULDER[:2])
-    away = away / max(float(np.hypot(*away)), 1e-9)
-    gap = layout.footprint_radius(catalog.get(carrier.asset), carrier.resting_pose) * carrier.scale
-    gap += layout.footprint_radius(catalog.get(target.asset), target.resting_pose) * target.scale + SLACK
-    xy = np.asarray(carrier.position[:2]) - gap * away  # toward the arm, off the carrier
-    return _resting(proposal, catalog, None, "table", xy, layout.TABLE_TOP_Z)
+    return resting(proposal, catalog, pose, target.support, target.position[:2], surface_z)
 
 
 def on_floor(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -364,10 +285,10 @@ def on_floor(proposal: SceneProposal, kind: str, value: float, threshold: float,
     target = next(o for o in proposal.objects if o.name == proposal.target)
     if kind == "required":
         xy = into(layout.FLOOR, (target.position[0], layout.FLOOR.center[1]))
-        return _resting(proposal, catalog, None, "floor", xy, layout.FLOOR.z)
+        return resting(proposal, catalog, None, "floor", xy, layout.FLOOR.z)
     table = layout.support_surfaces(())["table"]
     xy = into(table, (target.position[0], table.half[1] - 0.1))
-    return _resting(proposal, catalog, None, "table", xy, layout.TABLE_TOP_Z)
+    return resting(proposal, catalog, None, "table", xy, layout.TABLE_TOP_Z)
 
 
 def under_overhang(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
