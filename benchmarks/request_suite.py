@@ -8,8 +8,8 @@ and seed, in this process one after the other.
         [--also RECIPE ...] [--list]
 
 Halves (scenegen/experiment/request_suite.py HALVES): ``tuning`` and ``heldout`` draw "retrieve"
-requests (issues 46, 54), ``tuning-v4`` and ``heldout-v4`` every task (issue 64). ``--list`` prints a
-half's requests and asks nothing.
+requests (issues 46, 54), ``tuning-v4``, ``heldout-v4`` and ``heldout-v4b`` every task (issue 64).
+``--list`` prints a half's requests and asks nothing.
 
 The recipe (default the demo recipe, its realism check on) gives every proposer its settings; the
 procedural and targeted proposers take the settings they share with it. ``--also``: more recipes

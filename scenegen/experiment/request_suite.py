@@ -16,7 +16,9 @@ halves (``HALVES``), each fixed by its seed and tasks:
 - ``tuning`` (seed 1) and ``heldout`` (seed 2): "retrieve" only (issues 46 and 54; the seed-2 half
   has been read, generator v3's committed figures were measured on it);
 - ``tuning-v4`` (seed 1) and ``heldout-v4`` (seed 3): every task of the schema (issue 64); the
-  held-out half is run once, at the end, to report.
+  held-out half is run once, at the end, to report (it has been: 2026-11-30);
+- ``heldout-v4b`` (seed 4): every task, drawn after the seed-3 half was read, for the default as
+  changed after it (the widest-base restack), run once.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ HALVES: dict[str, tuple[int, tuple[str, ...]]] = {
     "heldout": (2, ("retrieve",)),
     "tuning-v4": (1, tuple(TASKS)),
     "heldout-v4": (3, tuple(TASKS)),
+    "heldout-v4b": (4, tuple(TASKS)),
 }
 TASK_RULES: dict[str, tuple[str, ...]] = {"upright": ("toppled",)}  # task -> the tags it requires
 JITTER = 0.1  # rad: the most each joint of the named pose is moved

@@ -74,7 +74,7 @@ def test_the_v4_halves_draw_every_task_each_with_its_rule(rows):
     """Issue 64 point 5: both v4 halves draw retrieve, upright and clear; an upright request requires
     toppled, of a category the data shows toppled; the other tags are the category's own."""
     known = tags_by_category(rows)
-    for half in ("tuning-v4", "heldout-v4"):
+    for half in ("tuning-v4", "heldout-v4", "heldout-v4b"):
         requests = suite(rows, half)
         assert {r.task for r in requests} == set(TASKS), half
         for r in requests:
