@@ -78,6 +78,7 @@ class DiffusionSettings(AssetChoice):
         "project": False,
         "denoise": True,
         "anticipate": False,
+        "anticipate_occluded": False,
         "light_projection": "scale",
         "verifier": None,
         "verifier_sha256": None,
@@ -126,6 +127,9 @@ class DiffusionSettings(AssetChoice):
     # project each proposal before its first check on what the proposer can measure itself: the
     # request's near_edge and clutter, the workspace (propose/project.py ``anticipated``)
     anticipate: bool = False
+    # with anticipate: a required occluded, which only the settled scene measures, projected on every
+    # proposal (the tallest other object set between the target and the camera, as its repair does)
+    anticipate_occluded: bool = False
     # how a required low_light is reached (repairs, anticipation, the soft cost): "scale" the whole
     # lighting (generator v3's), "aim" the lights that reach the target away from it first, as the
     # reference darkens a target, brightness kept (tag_projection.low_light_aimed, cost aim_lights)
@@ -489,5 +493,7 @@ class DiffusionProposer:
         if s.anticipate:
             from scenegen.propose.project import anticipated
 
-            proposal = anticipated(proposal, self.catalog, s.max_shift, s.light_projection)
+            proposal = anticipated(
+                proposal, self.catalog, s.max_shift, s.light_projection, s.anticipate_occluded
+            )
         return Decoded(proposal, tuple(o.projection_distance for o in proposal.objects))

@@ -55,6 +55,7 @@ PROJECTED = (
     "fell_off",
     "unstable",
 )
+OCCLUDED = 0.5  # the occluded predicate's default (occluded_fraction)
 _TAG = re.compile(r"(required|forbidden) (\w+) = (-?[\d.eE+-]+) \S+ \(threshold (-?[\d.eE+-]+)\)")
 
 
@@ -154,18 +155,25 @@ def _tags(proposal: SceneProposal, rejection: Rejection, catalog: Catalog, light
 
 
 def anticipated(
-    proposal: SceneProposal, catalog: Catalog, max_shift: float = 0.05, light: str = "scale"
+    proposal: SceneProposal,
+    catalog: Catalog,
+    max_shift: float = 0.05,
+    light: str = "scale",
+    occluded: bool = False,
 ) -> SceneProposal:
     """``proposal`` projected before any check on what the proposer can measure itself
     (``tp.before_check``: each asked tag that the scene as placed does not meet is projected by the
     same step as its repair), then every object on the table or floor into the workspace, and, if
     anything moved, overlaps pushed apart with the target held. ``occluded`` (rays through the
-    settled scene) is left to the model and the checks. ``light``: the low_light projection
-    (``tp.steps``)."""
+    settled scene, which the proposer cannot measure) is left to the model and the checks, or, with
+    ``occluded``, a required one is projected on every proposal (the occluder set before the
+    camera, as its repair does). ``light``: the low_light projection (``tp.steps``)."""
     out, names = proposal, []
     for tag, step in tp.steps(light).items():
         state = proposal.condition.tags.get(tag, "unspecified")
         measured = tp.before_check(out, tag, catalog) if state != "unspecified" else None
+        if measured is None and occluded and tag == "occluded" and state == "required":
+            measured = (0.0, OCCLUDED, False)
         if measured is None:
             continue
         value, threshold, holds = measured

@@ -79,6 +79,7 @@ def test_the_constants_agree_with_the_checks_and_predicates():
     assert tp.LOW_LIGHT == TagSettings().low_light_irradiance
     assert tp.OVERHANG_COVER == TagSettings().overhang_cover
     assert tp.TOPPLED_DEG == pytest.approx(math.degrees(TagSettings().toppled_angle))
+    assert proj.OCCLUDED == TagSettings().occluded_fraction
     assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
 
 
@@ -245,6 +246,33 @@ def test_a_missed_occluded_sets_the_tallest_other_between_target_and_camera(acce
             assert value > before  # more of the target hidden than before
     else:
         assert measured.holds
+
+
+def test_anticipate_occluded_sets_the_occluder_before_the_first_check(accepted, config):
+    """A required occluded, which only the settled scene measures: left to the checks by default;
+    with ``occluded`` the tallest other object is set between target and camera before any check,
+    the step the repair takes after a miss, and the real predicate then measures more of the target
+    hidden than without it."""
+    asked = accepted.model_copy(
+        update={"condition": Condition(task="retrieve", target="mug", tags={"occluded": "required"})}
+    )
+    assert proj.anticipated(asked, config.catalog()) == asked
+    placed = proj.anticipated(asked, config.catalog(), occluded=True)
+    stepped, names = tp.occluded(asked, "required", 0.0, proj.OCCLUDED, config.catalog())
+    occluder = names[0]
+    assert placed != asked and occluder != asked.target
+    assert next(o for o in placed.objects if o.name == occluder).position[:2] == pytest.approx(
+        next(o for o in stepped.objects if o.name == occluder).position[:2], abs=0.06
+    )  # where the step put it, give or take the push apart that follows (max_shift)
+
+    def hidden(proposal) -> float:
+        result = process_proposal(proposal, config, config.catalog(), False)
+        if result.record is not None:
+            return result.record.tags["occluded"].value
+        assert result.rejection.label == "condition_unmet", result.rejection
+        return float(result.rejection.detail.split("= ")[1].split(" ")[0])
+
+    assert hidden(placed) > hidden(asked)
 
 
 def test_anticipated_places_the_request_s_geometric_tags_before_any_check(accepted, config):
