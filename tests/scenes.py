@@ -27,6 +27,17 @@ SMALL = (160, 120)  # width, height of the cameras of small_recipe
 REFERENCE = Path(__file__).resolve().parents[1] / "pipelines" / "reference.yaml"
 
 
+def benchmark(name: str):
+    """The script ``benchmarks/<name>.py`` loaded as a module (the benchmarks are scripts, not a
+    package), so that a test can call its functions."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"{name}_bench", PROJECT_ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def stored_scenes(batch: Path) -> list[Path]:
     """The scene directories of a stored batch, in order."""
     return sorted(p for p in batch.glob("scene_*") if p.is_dir())

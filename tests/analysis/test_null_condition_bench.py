@@ -1,19 +1,7 @@
 """benchmarks/null_condition.py's reading aid: how much of the C2ST the object count explains."""
 
-import importlib.util
-
 import numpy as np
-
-from tests.conftest import PROJECT_ROOT
-
-
-def _benchmark():
-    spec = importlib.util.spec_from_file_location(
-        "null_condition_bench", PROJECT_ROOT / "benchmarks" / "null_condition.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from scenes import benchmark
 
 
 def _layouts(rng, shares, n):
@@ -30,7 +18,7 @@ def test_count_matched_draws_remove_a_difference_that_lies_only_in_the_count():
     rng = np.random.default_rng(0)
     data = _layouts(rng, [0.2] * 5, 500)
     generated = _layouts(rng, [0.05, 0.3, 0.4, 0.2, 0.05], 2000)
-    result = _benchmark().count_matched(generated, data, seed=0, draws=2)
+    result = benchmark("null_condition").count_matched(generated, data, seed=0, draws=2)
     assert 400 <= result["n"] <= 600  # 5 % of 2,000 six-object layouts, a fifth of the draw
     assert result["matched"] < 0.56
     assert result["unmatched"] > result["matched"] + 0.08
