@@ -144,6 +144,9 @@ def recipe(
     raw["proposer"]["project"] = project
     if project:
         raw["proposer"]["denoise"] = False  # every repair a projection
+    # the default sets a required occluded's occluder before the first check: here it is left to a
+    # repair, so that a batch of three reaches one
+    raw["proposer"]["anticipate_occluded"] = False
     raw.update(top)
     path = tmp_path / "recipe.yaml"
     path.write_text(yaml.safe_dump(raw))
