@@ -42,6 +42,11 @@ def into(region: layout.Surface, xy) -> np.ndarray:
 GROUNDS = {"table": layout.TABLE_TOP_Z, "floor": layout.FLOOR.z}  # the surfaces a stack can stand on
 
 
+def ground_of(proposal: SceneProposal, name: str) -> str:
+    """Where object ``name``'s stack stands: "floor", or "table" (on it or on furniture on it)."""
+    return "floor" if layout.stack_ground(proposal, name) == "floor" else "table"
+
+
 def rehomed(proposal: SceneProposal, name: str, ground: str, xy):
     """``proposal`` with object ``name`` (on the table or the floor) and its stack moved to ``xy`` on
     ``ground`` (``GROUNDS``): kept inside the floor strip there, lowered or raised by the surfaces'

@@ -55,7 +55,6 @@ PROJECTED = (
     "fell_off",
     "unstable",
 )
-OCCLUDED = 0.5  # the occluded predicate's default (occluded_fraction)
 _TAG = re.compile(r"(required|forbidden) (\w+) = (-?[\d.eE+-]+) \S+ \(threshold (-?[\d.eE+-]+)\)")
 
 
@@ -173,7 +172,7 @@ def anticipated(
         state = proposal.condition.tags.get(tag, "unspecified")
         measured = tp.before_check(out, tag, catalog) if state != "unspecified" else None
         if measured is None and occluded and tag == "occluded" and state == "required":
-            measured = (0.0, OCCLUDED, False)
+            measured = (0.0, tp.OCCLUDED, False)
         if measured is None:
             continue
         value, threshold, holds = measured

@@ -11,7 +11,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.moves import GROUNDS, SLACK, rehomed, resting
+from scenegen.propose.moves import GROUNDS, SLACK, ground_of, rehomed, resting
 from scenegen.schema.scene import SceneProposal
 
 
@@ -84,8 +84,8 @@ def restacked(proposal: SceneProposal, catalog: Catalog):
     def width(o) -> float:
         return min(layout.object_top_surface(catalog, o).half)
 
-    ground = "floor" if layout.stack_ground(proposal, target.name) == "floor" else "table"
-    bases = [o for o in stack_bases(proposal, catalog, ground) if o.support == ground]
+    on = ground_of(proposal, target.name)
+    bases = [o for o in stack_bases(proposal, catalog, on) if o.support == on]
     wider = [o for o in bases if width(o) > width(carrier)]
     if not wider:
         return None

@@ -11,7 +11,7 @@ import numpy as np
 
 from scenegen.assets.catalog import Catalog
 from scenegen.core import layout
-from scenegen.propose.moves import GROUNDS, SLACK, moved, rehomed, resting, root
+from scenegen.propose.moves import GROUNDS, SLACK, ground_of, moved, rehomed, resting, root
 from scenegen.propose.separate import separate
 from scenegen.propose.stack_projection import stacked
 from scenegen.schema.scene import SceneProposal
@@ -111,7 +111,7 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     if kind != "required":
         return None
     target = next(o for o in proposal.objects if o.name == proposal.target)
-    ground = _ground(proposal, target.name)
+    ground = ground_of(proposal, target.name)
     centre = np.asarray(target.position[:2])
     distance = {
         o.name: float(np.hypot(*(np.asarray(o.position[:2]) - centre)))
@@ -156,11 +156,6 @@ def clutter(proposal: SceneProposal, kind: str, value: float, threshold: float, 
     return apart, tuple(names)
 
 
-def _ground(proposal: SceneProposal, name: str) -> str:
-    """Where object ``name``'s stack stands: "floor", or "table" (on it or on furniture on it)."""
-    return "floor" if layout.stack_ground(proposal, name) == "floor" else "table"
-
-
 def _height(catalog: Catalog, obj) -> float:
     """How far an object's top stands above the surface it rests on (m)."""
     asset = catalog.get(obj.asset)
@@ -186,7 +181,7 @@ def occluded(proposal: SceneProposal, kind: str, value: float, threshold: float,
     gap = radius(catalog.get(target.asset), target.resting_pose) * target.scale
     gap += radius(catalog.get(occluder.asset), occluder.resting_pose) * occluder.scale + SLACK
     place = np.asarray(target.position[:2]) + gap * towards
-    return rehomed(proposal, occluder.name, _ground(proposal, target.name), place)
+    return rehomed(proposal, occluder.name, ground_of(proposal, target.name), place)
 
 
 def low_light(proposal: SceneProposal, kind: str, value: float, threshold: float, catalog: Catalog):
@@ -399,6 +394,7 @@ def _placed_vertices(catalog: Catalog, obj) -> np.ndarray:
 
 LOW_LIGHT = 0.25  # the predicate's default (tags/predicates.py low_light_irradiance)
 OVERHANG_COVER = 0.5  # the predicate's default (overhang_cover)
+OCCLUDED = 0.5  # the predicate's default (occluded_fraction)
 # Each tag's projection, in the order a scene's missed tags are projected: the target's place and pose
 # first, then what is around it, then the light.
 STEPS = {

@@ -79,7 +79,7 @@ def test_the_constants_agree_with_the_checks_and_predicates():
     assert tp.LOW_LIGHT == TagSettings().low_light_irradiance
     assert tp.OVERHANG_COVER == TagSettings().overhang_cover
     assert tp.TOPPLED_DEG == pytest.approx(math.degrees(TagSettings().toppled_angle))
-    assert proj.OCCLUDED == TagSettings().occluded_fraction
+    assert tp.OCCLUDED == TagSettings().occluded_fraction
     assert (CheckSettings().reach_min, CheckSettings().reach_max) == layout.REACH
 
 
@@ -258,7 +258,7 @@ def test_anticipate_occluded_sets_the_occluder_before_the_first_check(accepted, 
     )
     assert proj.anticipated(asked, config.catalog()) == asked
     placed = proj.anticipated(asked, config.catalog(), occluded=True)
-    stepped, names = tp.occluded(asked, "required", 0.0, proj.OCCLUDED, config.catalog())
+    stepped, names = tp.occluded(asked, "required", 0.0, tp.OCCLUDED, config.catalog())
     occluder = names[0]
     assert placed != asked and occluder != asked.target
     assert next(o for o in placed.objects if o.name == occluder).position[:2] == pytest.approx(
